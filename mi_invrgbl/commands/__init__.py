@@ -1,0 +1,1 @@
+"""Sub-commands of ``mi-invrgbl``: one module each, with ``add_parser`` and ``run``."""
