@@ -1,0 +1,41 @@
+"""Entry point of the ``mi-invrgbl`` console script.
+
+``import mi_invrgbl`` requires a Mitsuba variant to be chosen first (it
+registers the plugins for it), so the command picks the variant named by
+``-m/--variant`` before importing the package.
+"""
+
+import sys
+
+
+def _variant_from_argv(argv):
+    for i, arg in enumerate(argv):
+        if arg in ("-m", "--variant") and i + 1 < len(argv):
+            return argv[i + 1]
+        if arg.startswith("--variant="):
+            return arg.split("=", 1)[1]
+    return "llvm_ad_rgb"
+
+
+def main(argv=None):
+    argv = sys.argv[1:] if argv is None else argv
+    import mitsuba as mi
+    variant = _variant_from_argv(argv)
+    if variant in mi.variants():
+        mi.set_variant(variant)
+        try:
+            import mi_invrgbl  # noqa: F401  (registers the plugins)
+        except RuntimeError as exc:  # unusable libLLVM and friends: one line
+            print("mi-invrgbl: error: %s" % exc, file=sys.stderr)
+            return 2
+    else:
+        print("mi-invrgbl: error: unknown Mitsuba variant '%s' (available: %s)"
+              % (variant, ", ".join(v for v in mi.variants() if "_ad_rgb" in v)),
+              file=sys.stderr)
+        return 2
+    from mi_invrgbl.cli import main as cli_main
+    return cli_main(argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
