@@ -1,0 +1,283 @@
+"""Ray traversal of Gaussians: detached hit lists, differentiable blending.
+
+Both integrators work in two phases, the split that makes them fast and their
+gradients correct:
+
+1. :func:`trace` follows each ray through the scene *without derivatives*. It
+   records, per ray, up to ``max_hits`` Gaussians (node id + primitive index)
+   in the order the ray enters their support, and the first opaque (mesh) hit
+   behind them. Traversal stops when the transmittance drops below
+   ``min_transmittance``. This is one symbolic Dr.Jit loop, i.e. one kernel.
+2. :func:`eval_gaussian_hits` gathers the recorded Gaussians' parameters from
+   the shapes' own (possibly grad-enabled) arrays and computes each hit's
+   opacity and geometry differentiably; :func:`blend_weights` turns them into
+   front-to-back compositing weights ``w_k = a_k prod_{j<k} (1 - a_j)``.
+
+While geometry is frozen, a :class:`HitList` can be traced once and reused
+for every gradient step (only phase 2 runs).
+
+Hits are stored ray-major in flat arrays of length ``n_rays * max_hits``
+(index ``ray * max_hits + k``), so per-ray sums are ``dr.block_sum``.
+
+The Gaussian response along a ray is evaluated at its maximum (as in 3DGRT):
+``a = min(opacity * exp(-r^2 / 2), alpha_max)`` with ``r`` the Mahalanobis
+distance of the closest point of the ray.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+#: Largest per-hit opacity: keeps log(1 - a) finite for the transmittance.
+ALPHA_MAX = 0.99
+#: Per-Gaussian attribute defaults when a plain ``ellipsoids`` shape lacks them.
+ATTRIBUTE_DEFAULTS = {"albedo": 0.5, "roughness": 0.5, "lidar_albedo": 0.5,
+                      "sun_visibility": 1.0}
+ATTRIBUTE_WIDTHS = {"normal": 3, "albedo": 3, "roughness": 1, "lidar_albedo": 1,
+                    "sun_visibility": 1}
+#: Minimum scale used when mapping rays into a Gaussian's frame.
+MIN_SCALE = 1e-7
+
+
+def shape_id(shape) -> int:
+    """The Dr.Jit registry id of a shape, as stored in hit lists (0 = none)."""
+    return int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(shape))[0])
+
+
+class GaussianNode:
+    """View of one ``ellipsoids``/``gaussians`` shape's parameter arrays.
+
+    The arrays are those ``mi.traverse`` exposes, so gradients enabled by the
+    user on e.g. ``params['background.albedo']`` flow through the integrators.
+    """
+
+    def __init__(self, shape):
+        self.shape = shape
+        self.id = shape_id(shape)
+        params = mi.traverse(shape)
+        self.data = params["data"]
+        self.opacities = params["opacities"]
+        self.attributes = {k: params[k] for k in ATTRIBUTE_WIDTHS if k in params}
+        self.count = dr.width(self.opacities)
+
+
+def gaussian_nodes(scene) -> list:
+    return [GaussianNode(s) for s in scene.shapes() if s.is_ellipsoids()]
+
+
+def _gather_scalar(array, index, stride, offset, active):
+    return dr.gather(mi.Float, array, index * stride + offset, active)
+
+
+def gather_geometry(nodes, node_ids, prims, active):
+    """Centre, scale, unit quaternion and opacity of the addressed Gaussians."""
+    center, scale = mi.Point3f(0), mi.Vector3f(1)
+    quat = mi.Quaternion4f(0, 0, 0, 1)
+    opacity = mi.Float(0)
+    for node in nodes:
+        m = active & (node_ids == node.id)
+        g = [_gather_scalar(node.data, prims, 10, j, m) for j in range(10)]
+        center = dr.select(m, mi.Point3f(g[0], g[1], g[2]), center)
+        scale = dr.select(m, mi.Vector3f(g[3], g[4], g[5]), scale)
+        quat = dr.select(m, mi.Quaternion4f(g[6], g[7], g[8], g[9]), quat)
+        opacity = dr.select(m, dr.gather(mi.Float, node.opacities, prims, m), opacity)
+    # Normalise: users and optimisers may leave non-unit quaternions behind.
+    quat = quat * dr.rsqrt(dr.maximum(dr.squared_norm(quat), 1e-20))
+    return center, dr.maximum(scale, MIN_SCALE), quat, opacity
+
+
+def gather_attribute(nodes, name, node_ids, prims, active):
+    """Per-hit material attribute ``name`` (Float or Color3f/Vector3f)."""
+    width = ATTRIBUTE_WIDTHS[name]
+    value = mi.Vector3f(0) if width == 3 else mi.Float(ATTRIBUTE_DEFAULTS.get(name, 0.0))
+    if width == 3 and name in ATTRIBUTE_DEFAULTS:
+        value = mi.Vector3f(ATTRIBUTE_DEFAULTS[name])
+    for node in nodes:
+        if name not in node.attributes:
+            continue
+        m = active & (node_ids == node.id)
+        arr = node.attributes[name]
+        if width == 3:
+            v = mi.Vector3f(*[_gather_scalar(arr, prims, 3, j, m) for j in range(3)])
+        else:
+            v = dr.gather(mi.Float, arr, prims, m)
+        value = dr.select(m, v, value)
+    return value
+
+
+def gaussian_response(center, scale, quat, opacity, o, d):
+    """Peak opacity of each Gaussian along ray (o, d), the peak distance and the
+    shortest-axis normal.
+
+    Returns ``(alpha, t_peak, shortest_axis)``; alpha is clamped to ALPHA_MAX.
+    """
+    rot = dr.quat_to_matrix(mi.Matrix3f, quat)
+    rot_t = rot.T
+    o_local = (rot_t @ (o - center)) / scale
+    d_local = (rot_t @ d) / scale
+    dd = dr.maximum(dr.squared_norm(d_local), 1e-30)
+    t_peak = -dr.dot(o_local, d_local) / dd
+    closest = o_local + d_local * t_peak
+    alpha = dr.minimum(opacity * dr.exp(-0.5 * dr.squared_norm(closest)), ALPHA_MAX)
+    # Shortest axis: column of the rotation with the smallest scale.
+    sx, sy, sz = scale.x, scale.y, scale.z
+    col0 = mi.Vector3f(rot[0][0], rot[1][0], rot[2][0])
+    col1 = mi.Vector3f(rot[0][1], rot[1][1], rot[2][1])
+    col2 = mi.Vector3f(rot[0][2], rot[1][2], rot[2][2])
+    axis = dr.select((sx <= sy) & (sx <= sz), col0, dr.select(sy <= sz, col1, col2))
+    return alpha, t_peak, axis
+
+
+@dataclass
+class HitList:
+    """Recorded traversal of ``n_rays`` rays (see module docstring)."""
+    n_rays: int
+    max_hits: int
+    node_ids: mi.UInt32        # (n_rays * max_hits,), 0 where unused
+    prims: mi.UInt32           # (n_rays * max_hits,)
+    count: mi.UInt32           # (n_rays,) Gaussians recorded per ray
+    surface: mi.PreliminaryIntersection3f  # first opaque hit behind them
+    surface_valid: mi.Bool     # (n_rays,)
+
+    @property
+    def hit_mask(self):
+        return self.node_ids != 0
+
+    def ray_index(self):
+        return dr.arange(mi.UInt32, self.n_rays * self.max_hits) // self.max_hits
+
+    def surface_interaction(self, rays):
+        """Full SurfaceInteraction3f at the opaque hits (invalid elsewhere)."""
+        return self.surface.compute_surface_interaction(
+            rays, mi.RayFlags.All, self.surface_valid)
+
+
+@dr.syntax
+def trace(scene, rays, max_hits=64, min_transmittance=1e-3, nodes=None):
+    """Record each ray's Gaussians and first opaque hit (no derivatives).
+
+    ``rays`` is a Ray3f of n rays with unit directions. Returns a :class:`HitList`.
+    """
+    with dr.suspend_grad():
+        nodes = gaussian_nodes(scene) if nodes is None else nodes
+        n = dr.width(rays.o)
+        K = int(max_hits)
+        node_buf = dr.zeros(mi.UInt32, n * K)
+        prim_buf = dr.zeros(mi.UInt32, n * K)
+        base = dr.arange(mi.UInt32, n) * K
+
+        o = mi.Point3f(rays.o)
+        d = mi.Vector3f(rays.d)
+        t_offset = mi.Float(0)
+        count = mi.UInt32(0)
+        transmittance = mi.Float(1)
+        surf = dr.zeros(mi.PreliminaryIntersection3f, n)
+        surf_valid = mi.Bool(False)
+        active = mi.Bool(True)
+        maxt = mi.Float(rays.maxt)
+
+        while active:
+            pi = scene.ray_intersect_preliminary(mi.Ray3f(o, d, maxt - t_offset), False, active)
+            valid = active & pi.is_valid()
+            sid = dr.reinterpret_array(mi.UInt32, pi.shape)
+            is_gaussian = mi.Bool(False)
+            for node in nodes:
+                is_gaussian |= sid == node.id
+            is_gaussian &= valid
+
+            # Opaque surface: remember it (distance from the ray's true origin)
+            # and stop; nothing behind it is visible.
+            is_surface = valid & ~is_gaussian
+            hit_pi = mi.PreliminaryIntersection3f(pi)
+            hit_pi.t = pi.t + t_offset
+            surf[is_surface] = hit_pi
+            surf_valid |= is_surface
+
+            center, scale, quat, opacity = gather_geometry(nodes, sid, pi.prim_index, is_gaussian)
+            alpha, _, _ = gaussian_response(center, scale, quat, opacity, o, d)
+            slot = base + count
+            dr.scatter(node_buf, sid, slot, is_gaussian)
+            dr.scatter(prim_buf, pi.prim_index, slot, is_gaussian)
+            count[is_gaussian] += 1
+            transmittance[is_gaussian] *= 1.0 - alpha
+
+            # Continue just past the entry point: the ellipsoid intersector only
+            # reports a Gaussian where a ray enters it, so the new ray, which
+            # starts inside, does not see this one again.
+            step = pi.t + 1e-5 + 1e-6 * (pi.t + t_offset)
+            o[is_gaussian] = o + d * step
+            t_offset[is_gaussian] += step
+            active = is_gaussian & (count < K) & (transmittance > min_transmittance)
+
+        dr.eval(node_buf, prim_buf, count, surf, surf_valid)
+        return HitList(n, K, node_buf, prim_buf, count, surf, surf_valid)
+
+
+def expand_rays(rays, hits: HitList):
+    """Per-hit copies (length n_rays * max_hits) of each ray's origin and direction."""
+    idx = hits.ray_index()
+    o = dr.gather(mi.Point3f, rays.o, idx)
+    d = dr.gather(mi.Vector3f, rays.d, idx)
+    return o, d
+
+
+@dataclass
+class GaussianHits:
+    """Differentiable per-hit quantities (flat, length n_rays * max_hits)."""
+    alpha: mi.Float
+    t: mi.Float            # distance from the ray origin to the response peak
+    normal: mi.Vector3f    # unit normal facing the ray
+    cos_theta: mi.Float    # |n . d|
+    active: mi.Bool
+
+
+def eval_gaussian_hits(scene_or_nodes, rays, hits: HitList):
+    """Per-hit opacity, peak distance and ray-facing normal (differentiable)."""
+    nodes = scene_or_nodes if isinstance(scene_or_nodes, list) else gaussian_nodes(scene_or_nodes)
+    active = hits.hit_mask
+    o, d = expand_rays(rays, hits)
+    center, scale, quat, opacity = gather_geometry(nodes, hits.node_ids, hits.prims, active)
+    alpha, t_peak, axis = gaussian_response(center, scale, quat, opacity, o, d)
+    normal = axis
+    has_normal = mi.Bool(False)
+    for node in nodes:
+        if "normal" in node.attributes:
+            has_normal |= hits.node_ids == node.id
+    stored = gather_attribute(nodes, "normal", hits.node_ids, hits.prims, active & has_normal)
+    normal = dr.select(has_normal, stored, normal)
+    normal = normal * dr.rsqrt(dr.maximum(dr.squared_norm(normal), 1e-20))
+    cos_d = dr.dot(normal, d)
+    normal = dr.select(cos_d > 0, -normal, normal)  # two-sided: face the ray
+    alpha = dr.select(active, alpha, 0.0)
+    return GaussianHits(alpha, dr.maximum(t_peak, 0.0), normal, dr.abs(cos_d), active)
+
+
+def blend_weights(alpha, max_hits):
+    """Front-to-back weights ``w_k`` and the transmittance left behind the hits.
+
+    Returns ``(w, t_after)`` with ``w`` flat (per hit) and ``t_after`` per ray.
+    """
+    log_t = dr.log(1.0 - alpha)
+    t_before = dr.exp(dr.block_prefix_sum(log_t, max_hits, exclusive=True))
+    t_after = dr.exp(dr.block_sum(log_t, max_hits))
+    return alpha * t_before, t_after
+
+
+def composite(weights, values, max_hits):
+    """Per-ray sum of ``w_k * value_k`` (values flat, Float or 3-vectors)."""
+    if isinstance(values, (mi.Float, float, int)):
+        return dr.block_sum(weights * values, max_hits)
+    v = weights * values
+    return type(values)(*[dr.block_sum(v[i], max_hits) for i in range(len(v))])
+
+
+def ad_integrator_base():
+    """Mitsuba's Python ``ADIntegrator`` base class for the active variant."""
+    import importlib
+    import mitsuba.python.ad.integrators.common as common
+    if mi.CppADIntegrator not in common.ADIntegrator.__mro__:
+        common = importlib.reload(common)
+    return common.ADIntegrator
