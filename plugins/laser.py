@@ -69,8 +69,8 @@ class LaserEmitter(mi.Emitter):
     def __init__(self, props: mi.Properties):
         super().__init__(props)
         self.m_flags = mi.EmitterFlags.DeltaPosition
-        if props.has_property("position"):
-            if props.has_property("to_world"):
+        if "position" in props:
+            if "to_world" in props:
                 raise LaserError("laser: give either 'position' or 'to_world', not both")
             p = props.get("position")
             self.position = mi.Point3f(*(float(v) for v in p))

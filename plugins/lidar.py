@@ -187,22 +187,22 @@ class LidarSensor(mi.Sensor):
         # Work out the scan pattern first: without a user film, it sets the
         # size of the default one, which must exist before mi.Sensor's
         # constructor (that would otherwise make a 768 x 576 Gaussian-filtered film).
-        modes = [n for n in ("preset", "elevations", "rays") if props.has_property(n)]
+        modes = [n for n in ("preset", "elevations", "rays") if n in props]
         if len(modes) > 1:
             raise LidarError("lidar: give only one of 'preset', 'elevations' and "
                              "'rays' (got %s)" % ", ".join(modes))
         self._rays_local = None       # (N, 6) in the explicit-ray mode
         self._elevations_deg = None   # (H,) in the grid modes with a table
         fov = None
-        if props.has_property("preset"):
+        if "preset" in props:
             name = str(props.get("preset")).lower()
             if name not in PRESETS:
                 raise LidarError("lidar: parameter 'preset' must be one of %s, got %r"
                                  % (", ".join(sorted(PRESETS)), name))
             self._elevations_deg = np.asarray(PRESETS[name], dtype=np.float64)
-        elif props.has_property("elevations"):
+        elif "elevations" in props:
             self._elevations_deg = _parse_elevations(str(props.get("elevations")))
-        elif props.has_property("rays"):
+        elif "rays" in props:
             self._rays_local = _load_rays(str(props.get("rays")))
         else:
             fov = (_float_prop(props, "fov_up", 2.0), _float_prop(props, "fov_down", -24.9))
