@@ -248,7 +248,8 @@ def test_stock_path_matches_closed_form(seed):
     towards /= np.linalg.norm(towards)
     centre = pos_s + rng.uniform(2.0, 15.0) * towards
     rot_p = random_rotation(rng)
-    if (pos_s - centre) @ rot_p[:, 2] < 0 and seed % 4 != 3:
+    facing = (pos_s - centre) @ rot_p[:, 2] > 0
+    if facing == (seed % 4 == 3):
         rot_p[:, 1:] *= -1  # flip the normal (keeps a rotation)
     plane_tf, m_p = to_transform(rot_p, centre, scale=rng.uniform(5.0, 30.0))
     rho, power = rng.uniform(0.1, 0.9), rng.uniform(0.5, 3.0)
