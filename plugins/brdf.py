@@ -35,11 +35,17 @@ def clamp_alpha(roughness):
     return dr.clip(roughness, MIN_ALPHA, 1.0)
 
 
-def ggx_d(cos_h, alpha):
-    """GGX normal distribution D(h) for ``cos_h = n.h``; 0 for back-facing h."""
+def ggx_d(cos_h, alpha, sin2_h=None):
+    """GGX normal distribution D(h) for ``cos_h = n.h``; 0 for back-facing h.
+
+    ``sin2_h`` (``h.x^2 + h.y^2``), when given, replaces ``1 - cos_h^2``:
+    near the peak of a smooth lobe that difference cancels to float32
+    rounding noise, which is comparable to ``alpha^2`` for alpha ~ 1e-3.
+    """
     a2 = dr.square(alpha)
     c2 = dr.square(cos_h)
-    denom = c2 * (a2 - 1.0) + 1.0
+    s2 = 1.0 - c2 if sin2_h is None else sin2_h
+    denom = c2 * a2 + s2
     return dr.select(cos_h > 0, a2 / (dr.pi * dr.square(denom)), 0.0)
 
 
@@ -77,7 +83,7 @@ def specular(wi, wo, roughness, f0=F0_DEFAULT):
     cos_h = mi.Frame3f.cos_theta(h)
     o_dot_h = dr.dot(wo, h)
     alpha = clamp_alpha(roughness)
-    value = (schlick_f(f0, dr.dot(wi, h)) * ggx_d(cos_h, alpha)
+    value = (schlick_f(f0, dr.dot(wi, h)) * ggx_d(cos_h, alpha, dr.square(h.x) + dr.square(h.y))
              * vcavity_g_over_4cos(cos_i, cos_o, cos_h, o_dot_h))
     return dr.select((cos_i > COS_EPS) & (cos_o > COS_EPS), value, 0.0)
 
