@@ -96,6 +96,14 @@ class CookTorranceBSDF(mi.BSDF):
     specular lobe, weighting them by the albedo's luminance and the Fresnel
     reflectance at the incident angle.
 
+    Integrators read the material at a hit through Mitsuba's attribute
+    interface, which dispatches to this Python class even for arrays of mixed
+    BSDFs: ``si.bsdf().has_attribute('lidar_albedo')``,
+    ``si.bsdf().eval_attribute_1('lidar_albedo' | 'roughness', si)`` and
+    ``si.bsdf().eval_attribute_3('albedo', si)`` (other BSDFs answer
+    ``False``/0). :py:meth:`material` returns all three at once when the
+    Python object is at hand (``si.bsdf()[i]`` is that object).
+
     .. tabs::
 
         .. code-tab:: xml

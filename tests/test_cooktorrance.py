@@ -328,3 +328,40 @@ def test_traverse_update_and_texture(scenes_dir):
     params.update()
     bsdf = [s for s in scene.shapes() if s.id() == "sphere"][0].bsdf()
     assert np.allclose(np.array(bsdf.material(dr.zeros(mi.SurfaceInteraction3f))[1]), 0.9)
+
+
+def test_components_split_the_lobes():
+    bsdf = make_bsdf(albedo=0.4, roughness=0.3)
+    assert bsdf.flags() & mi.BSDFFlags.DiffuseReflection
+    assert bsdf.flags() & mi.BSDFFlags.GlossyReflection
+    assert not bsdf.flags() & (mi.BSDFFlags.DiffuseTransmission | mi.BSDFFlags.BackSide)
+    si = interaction(direction(35.0), 64)
+    wo = mi.Vector3f(mi.warp.square_to_uniform_hemisphere(mi.Point2f(
+        np.random.default_rng(2).random((2, 64)))))
+    total = bsdf.eval(mi.BSDFContext(), si, wo)
+    parts = []
+    for component in (0, 1):
+        ctx = mi.BSDFContext()
+        ctx.component = component
+        parts.append(bsdf.eval(ctx, si, wo))
+        bs, _ = bsdf.sample(ctx, si, mi.Float(0.5), mi.Point2f(0.3, 0.6))
+        assert dr.all(bs.sampled_component == component)
+    assert dr.allclose(parts[0] + parts[1], total)
+
+
+def test_prb_gradients_through_the_material(scenes_dir):
+    scene = mi.load_file(str(scenes_dir / "cooktorrance_sphere.xml"), spp=4, res=16)
+    params = mi.traverse(scene)
+    keys = ["sphere.bsdf.albedo", "sphere.bsdf.roughness", "sphere.bsdf.f0",
+            "ground.bsdf.albedo.color0.value"]
+    for key in keys:
+        dr.enable_grad(params[key])
+    params.update()
+    image = mi.render(scene, params, integrator=mi.load_dict({"type": "prb", "max_depth": 3}))
+    dr.backward(dr.mean(image, axis=None))
+    for key in keys:
+        grad = np.array(dr.grad(params[key]))
+        assert np.all(np.isfinite(grad)) and np.any(grad != 0), key
+    # A brighter albedo and a stronger Fresnel both brighten the image.
+    assert np.all(np.array(dr.grad(params["sphere.bsdf.albedo"])) > 0)
+    assert np.array(dr.grad(params["sphere.bsdf.f0"]))[0] > 0
