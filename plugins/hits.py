@@ -281,3 +281,47 @@ def ad_integrator_base():
     if mi.CppADIntegrator not in common.ADIntegrator.__mro__:
         common = importlib.reload(common)
     return common.ADIntegrator
+
+
+def surface_bsdfs(scene):
+    """The distinct BSDFs of the scene's non-Gaussian shapes."""
+    seen, out = set(), []
+    for shape in scene.shapes():
+        if shape.is_ellipsoids():
+            continue
+        bsdf = shape.bsdf()
+        if bsdf is not None and id(bsdf) not in seen:
+            seen.add(id(bsdf))
+            out.append(bsdf)
+    return out
+
+
+def surface_lidar_material(scene, si, active, model="pbr", f0=0.04):
+    """LiDAR reflectance at opaque (mesh) hits.
+
+    Returns ``(factor, lidar_albedo)`` where ``factor = pi f_r(w, w)`` seen by a
+    co-located LiDAR. A BSDF with a ``material()`` method (``cooktorrance``)
+    supplies its LiDAR albedo and roughness to the paper's equation; any other
+    BSDF is evaluated with light and viewer co-located (RGB luminance).
+    """
+    from . import brdf
+    cos_theta = dr.abs(mi.Frame3f.cos_theta(si.wi))
+    factor, rho = mi.Float(0), mi.Float(0)
+    bsdf_ptr = si.bsdf()
+    for bsdf in surface_bsdfs(scene):
+        m = active & (bsdf_ptr == mi.BSDFPtr(bsdf))
+        material = getattr(bsdf, "material", None)
+        if material is not None:
+            _, tau, rho_l = material(si, m)
+            f = brdf.lidar_return_factor(rho_l, tau, cos_theta, model, f0)
+            r = rho_l
+        else:
+            ctx = mi.BSDFContext()
+            if model == "lambertian":
+                ctx.type_mask = mi.BSDFFlags.DiffuseReflection
+            value = bsdf.eval(ctx, si, si.wi, m)
+            f = dr.pi * mi.luminance(value) / dr.maximum(cos_theta, 1e-6)
+            r = f
+        factor = dr.select(m, f, factor)
+        rho = dr.select(m, r, rho)
+    return factor, rho

@@ -1,7 +1,251 @@
-"""Placeholder until the plugin lands."""
+"""The ``invrgbl`` integrator: physically based camera rendering of Gaussians + meshes."""
+
+from __future__ import annotations
+
+import drjit as dr
 import mitsuba as mi
+
+from . import brdf, hits as hitlib
+from .lighting import GaussianLighting, LightingCache, transmittance
+
 _variant = mi.variant()
+
+AOV_NAMES = ["albedo.R", "albedo.G", "albedo.B", "normal.X", "normal.Y", "normal.Z",
+             "roughness", "lidar_albedo", "depth", "alpha"]
+
+
+class InvRGBLIntegrator(hitlib.ad_integrator_base()):
+    r"""
+    .. _integrator-invrgbl:
+
+    InvRGB+L camera integrator (:monosp:`invrgbl`)
+    ----------------------------------------------
+
+    .. pluginparameters::
+
+     * - samples
+       - |int|
+       - M, sky directions per Gaussian (cosine-weighted Fibonacci spiral around
+         its normal). The paper trains with 16 and renders with 128. (Default: 64)
+     * - max_hits
+       - |int|
+       - Most Gaussians blended per camera ray. (Default: 64)
+     * - min_transmittance
+       - |float|
+       - A ray stops once its transmittance falls below this. (Default: 1e-3)
+     * - sun_visibility
+       - |string|
+       - ``trace``: trace each Gaussian's shadow ray to the sun (shadows follow
+         a moved sun); ``attribute``: use the per-Gaussian ``sun_visibility``
+         field (the fitted value). (Default: ``trace``)
+     * - f0
+       - |float|
+       - Fresnel reflectance at normal incidence of the Gaussians. (Default: 0.04)
+     * - hide_emitters
+       - |bool|
+       - Show the background as black instead of the sky. (Default: false)
+
+    Gaussians (``gaussians`` or any ``ellipsoids`` shape) are alpha-blended
+    front to back along each camera ray. Each Gaussian's colour is the
+    paper's physically based shading with its normal, RGB albedo and
+    roughness (``cooktorrance``'s BRDF):
+
+    .. math::
+
+        c(w_o) = \sum_{lights} v_l\, f_r(w_l, w_o)\, E_l \cos\theta_l
+               + \frac{\pi}{M} \sum_{i=1}^{M} v(w_i)\, f_r(w_i, w_o)\, L_{sky}(w_i)
+
+    with visibilities ``v`` traced from the Gaussian's centre through the
+    other Gaussians and the meshes. Where the paper is loose, this is
+    stricter: the sun term includes the BRDF (the paper multiplies the sun's
+    irradiance by ``n . w_sun`` alone), the sky estimator is an unbiased
+    cosine-weighted quadrature (``pi / M`` weight), and every point or spot
+    light of the scene lights the Gaussians with its ``1/d^2`` falloff.
+
+    A mesh behind the Gaussians (or alone) is shaded with its own BSDF (any
+    Mitsuba BSDF) by direct lighting: one emitter sample and one BSDF sample
+    per camera sample, combined by multiple importance sampling; shadow rays
+    see the Gaussians' transmittance.
+
+    AOVs, in this order: ``albedo`` (RGB), ``normal`` (world), ``roughness``,
+    ``lidar_albedo``, ``depth`` (distance along the ray), ``alpha``
+    (accumulated opacity). Material AOVs are alpha-blended like the colour,
+    i.e. not divided by ``alpha``.
+
+    .. code-block:: xml
+
+        <integrator type="invrgbl">
+            <integer name="samples" value="16"/>
+        </integrator>
+    """
+
+    def __init__(self, props):
+        super().__init__(props)
+        self.samples = int(props.get("samples", 64))
+        self.max_hits = int(props.get("max_hits", 64))
+        self.min_transmittance = float(props.get("min_transmittance", 1e-3))
+        self.sun_visibility = str(props.get("sun_visibility", "trace"))
+        self.f0 = float(props.get("f0", brdf.F0_DEFAULT))
+        self.hide_emitters = bool(props.get("hide_emitters", False))
+        if self.samples < 1:
+            raise ValueError("invrgbl: samples must be >= 1")
+        if self.max_hits < 1:
+            raise ValueError("invrgbl: max_hits must be >= 1")
+        if self.sun_visibility not in ("trace", "attribute"):
+            raise ValueError("invrgbl: sun_visibility must be 'trace' or 'attribute'")
+        self.cache = LightingCache()
+
+    def aov_names(self):
+        return list(AOV_NAMES)
+
+    # ------------------------------------------------------------ Gaussians
+    def shade_gaussian_hits(self, lighting, nodes, rays, hit_list, g):
+        """Per-hit colour and materials (flat arrays, differentiable)."""
+        active = g.active
+        ids, prims = hit_list.node_ids, hit_list.prims
+        albedo = mi.Color3f(hitlib.gather_attribute(nodes, "albedo", ids, prims, active))
+        tau = hitlib.gather_attribute(nodes, "roughness", ids, prims, active)
+        rho_l = hitlib.gather_attribute(nodes, "lidar_albedo", ids, prims, active)
+        gidx = lighting.table.global_index(ids, prims)
+        n = dr.gather(mi.Vector3f, lighting.table.normal, gidx, active)
+        _, d = hitlib.expand_rays(rays, hit_list)
+        wo_world = -d
+        frame = mi.Frame3f(n)
+        wo = frame.to_local(wo_world)
+
+        # Diffuse: albedo * (mean sky radiance + sum of light irradiance cos / pi).
+        irradiance_pi = dr.gather(mi.Color3f, lighting.diffuse_sky, gidx, active)
+        specular = mi.Color3f(0.0)
+        for d_l, e_l in zip(lighting.light_dir, lighting.light_irr):
+            wl = frame.to_local(dr.gather(mi.Vector3f, d_l, gidx, active))
+            e = dr.gather(mi.Color3f, e_l, gidx, active)
+            cos_l = dr.maximum(mi.Frame3f.cos_theta(wl), 0.0)
+            irradiance_pi += e * cos_l * dr.inv_pi
+            specular += e * cos_l * brdf.specular(wl, wo, tau, self.f0)
+        # Specular sky: pi/M sum_i f_s(w_i, w_o) v_i L(w_i) over the Gaussian's samples.
+        M = lighting.samples
+        for i in range(M):
+            j = gidx * M + i
+            wi = frame.to_local(dr.gather(mi.Vector3f, lighting.sky_dirs, j, active))
+            li = dr.gather(mi.Color3f, lighting.sky_radiance, j, active)
+            specular += li * brdf.specular(wi, wo, tau, self.f0) * (dr.pi / M)
+        colour = albedo * irradiance_pi + specular
+        colour = dr.select(active & dr.all(dr.isfinite(colour)), colour, 0.0)
+        return colour, albedo, n, tau, rho_l
+
+    # --------------------------------------------------------------- meshes
+    def shade_surface(self, scene, sampler, si, nodes, active):
+        """Direct lighting at mesh hits: emitter + BSDF sample with MIS."""
+        bsdf = si.bsdf()
+        ctx = mi.BSDFContext()
+        result = mi.Color3f(0.0)
+        # Emitted radiance of area lights seen directly.
+        result += mi.Color3f(si.emitter(scene).eval(si, active))
+
+        # Emitter sampling.
+        ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), False, active)
+        em_active = active & (ds.pdf != 0)
+        wo = si.to_local(ds.d)
+        f_em, pdf_bsdf = bsdf.eval_pdf(ctx, si, wo, em_active)
+        vis = transmittance(scene, si.spawn_ray(ds.d).o, ds.d,
+                            dr.select(dr.isfinite(ds.dist), ds.dist * (1 - 1e-4), dr.inf), nodes)
+        mis = dr.select(ds.delta, 1.0, ds.pdf / dr.maximum(ds.pdf + pdf_bsdf, 1e-20))
+        result += dr.select(em_active, mi.Color3f(f_em) * mi.Color3f(em_weight) * vis * mis, 0.0)
+
+        # BSDF sampling towards the environment and area lights.
+        bs, bsdf_weight = bsdf.sample(ctx, si, sampler.next_1d(), sampler.next_2d(), active)
+        bs_active = active & (bs.pdf > 0)
+        ray = si.spawn_ray(si.to_world(bs.wo))
+        si2 = scene.ray_intersect(ray, bs_active)
+        emitter = si2.emitter(scene, bs_active)
+        hit_light = bs_active & (emitter != None)  # noqa: E711  (Dr.Jit pointer test)
+        ds2 = mi.DirectionSample3f(scene, si2, si)
+        pdf_em = scene.pdf_emitter_direction(si, ds2, hit_light & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta))
+        mis2 = dr.select(mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta), 1.0,
+                         bs.pdf / dr.maximum(bs.pdf + pdf_em, 1e-20))
+        # Gaussians in front of the light dim it; meshes already stopped si2.
+        vis2 = transmittance(scene, ray.o, ray.d, dr.select(si2.is_valid(), si2.t, dr.inf), nodes)
+        result += dr.select(hit_light, mi.Color3f(bsdf_weight) * mi.Color3f(emitter.eval(si2, hit_light))
+                            * mis2 * vis2, 0.0)
+        return result
+
+    def surface_materials(self, scene, si, active):
+        albedo, tau, rho_l = mi.Color3f(0.0), mi.Float(0.0), mi.Float(0.0)
+        ptr = si.bsdf()
+        for bsdf in hitlib.surface_bsdfs(scene):
+            m = active & (ptr == mi.BSDFPtr(bsdf))
+            material = getattr(bsdf, "material", None)
+            if material is not None:
+                a, t, r = material(si, m)
+            else:
+                a = mi.Color3f(bsdf.eval_diffuse_reflectance(si, m))
+                t, r = mi.Float(1.0), mi.luminance(a)
+            albedo = dr.select(m, a, albedo)
+            tau = dr.select(m, t, tau)
+            rho_l = dr.select(m, r, rho_l)
+        return albedo, tau, rho_l
+
+    # ---------------------------------------------------------------- main
+    def sample(self, mode, scene, sampler, ray, depth=None, δL=None, δaovs=None,
+               state_in=None, active=True, **kwargs):
+        rays = mi.Ray3f(dr.detach(ray))
+        nodes = hitlib.gaussian_nodes(scene)
+        hit_list = hitlib.trace(scene, rays, self.max_hits, self.min_transmittance, nodes)
+        K = hit_list.max_hits
+        n_rays = dr.width(rays.o)
+
+        L = dr.zeros(mi.Color3f, n_rays)
+        albedo_aov = dr.zeros(mi.Color3f, n_rays)
+        normal_aov = dr.zeros(mi.Vector3f, n_rays)
+        tau_aov = dr.zeros(mi.Float, n_rays)
+        rho_aov = dr.zeros(mi.Float, n_rays)
+        depth_aov = dr.zeros(mi.Float, n_rays)
+        alpha = dr.zeros(mi.Float, n_rays)
+        t_after = dr.ones(mi.Float, n_rays)
+
+        if nodes:
+            lighting = GaussianLighting(scene, nodes, self.samples, self.cache,
+                                        trace_sun=self.sun_visibility == "trace")
+            g = hitlib.eval_gaussian_hits(nodes, rays, hit_list)
+            w, t_after = hitlib.blend_weights(g.alpha, K)
+            colour, albedo, n, tau, rho_l = self.shade_gaussian_hits(lighting, nodes, rays, hit_list, g)
+            L = hitlib.composite(w, colour, K)
+            albedo_aov = hitlib.composite(w, albedo, K)
+            normal_aov = hitlib.composite(w, n, K)
+            tau_aov = hitlib.composite(w, tau, K)
+            rho_aov = hitlib.composite(w, rho_l, K)
+            depth_aov = hitlib.composite(w, g.t, K)
+            alpha = hitlib.composite(w, mi.Float(1.0), K)
+
+        si = hit_list.surface_interaction(rays)
+        surf = hit_list.surface_valid & si.is_valid()
+        s_w = dr.select(surf, t_after, 0.0)
+        if dr.any(surf):
+            L += s_w * self.shade_surface(scene, sampler, si, nodes, surf)
+            a, t, r = self.surface_materials(scene, si, surf)
+            albedo_aov += s_w * a
+            normal_aov += s_w * si.sh_frame.n
+            tau_aov += s_w * t
+            rho_aov += s_w * r
+            depth_aov += s_w * si.t
+            alpha += s_w
+
+        # Background: the sky seen through whatever transmittance is left.
+        env = scene.environment()
+        if env is not None and not self.hide_emitters:
+            miss = ~surf
+            bg = dr.zeros(mi.SurfaceInteraction3f, n_rays)
+            bg.wi = -rays.d
+            L += dr.select(miss, t_after * mi.Color3f(env.eval(bg, miss)), 0.0)
+
+        aovs = [albedo_aov.x, albedo_aov.y, albedo_aov.z, normal_aov.x, normal_aov.y,
+                normal_aov.z, tau_aov, rho_aov, depth_aov, alpha]
+        valid = mi.Bool(True)
+        return mi.Spectrum(L), valid, aovs, None
+
+    def to_string(self):
+        return "InvRGBLIntegrator[samples=%d, max_hits=%d]" % (self.samples, self.max_hits)
 
 
 def register():
-    pass
+    mi.register_integrator("invrgbl", lambda props: InvRGBLIntegrator(props))

@@ -155,26 +155,6 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
         cos_term = dr.select(c > 0, dr.power(c, self.angle_exponent), 0.0)
         return gain * factor * power * cos_term / (dr.pi * dr.power(d, self.range_exponent))
 
-    def _surface_material(self, si, active):
-        """(pi f_r(w, w) LiDAR factor, LiDAR albedo, cos theta) at mesh hits."""
-        cos_theta = dr.abs(mi.Frame3f.cos_theta(si.wi))
-        bsdf = si.bsdf()
-        material = getattr(bsdf, "lidar_material", None)
-        if material is not None:  # a single Python BSDF (e.g. cooktorrance)
-            rho, tau = material(si, active)
-            factor = brdf.lidar_return_factor(rho, tau, cos_theta, self.model, self.f0)
-            return factor, rho, cos_theta
-        ctx = mi.BSDFContext()
-        value = bsdf.eval(ctx, si, si.wi, active)
-        f = mi.luminance(value) / dr.maximum(cos_theta, 1e-6)
-        factor = dr.pi * f
-        rho = factor
-        if self.model == "lambertian":
-            ctx.type_mask = mi.BSDFFlags.DiffuseReflection
-            rho = factor = dr.pi * mi.luminance(bsdf.eval(ctx, si, si.wi, active)) \
-                / dr.maximum(cos_theta, 1e-6)
-        return factor, rho, cos_theta
-
     def render_beams(self, scene, rays, row, hit_list=None, near=0.0):
         """Channels (list of per-ray Floats, see CHANNELS) for ``rays``.
 
@@ -210,7 +190,8 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
         # Opaque surface behind the Gaussians.
         si = hit_list.surface_interaction(rays)
         surf = hit_list.surface_valid & si.is_valid()
-        s_factor, s_rho, s_cos = self._surface_material(si, surf)
+        s_factor, s_rho = hitlib.surface_lidar_material(scene, si, surf, self.model, self.f0)
+        s_cos = dr.abs(mi.Frame3f.cos_theta(si.wi))
         s_dist = si.t + near
         s_int = self._response(s_factor, s_cos, s_dist, row, power)
         s_w = dr.select(surf, t_after, 0.0)
