@@ -86,7 +86,9 @@ def cloud_from_props(props) -> GaussianCloud:
     if props.has_property("filename"):
         path = str(props.get("filename"))
         resolved = mi.Thread.thread().file_resolver().resolve(path)
-        return read_ply(os.fspath(resolved))
+        # str(): Mitsuba's filesystem.path is not os.PathLike (os.fspath raised
+        # TypeError, so no 'filename' could ever be loaded).
+        return read_ply(str(resolved))
     centers = _tensor_prop(props, "centers")
     if centers is None:
         raise GaussianFileError("gaussians: give either 'filename' or the 'centers' "
