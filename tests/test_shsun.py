@@ -468,3 +468,32 @@ def test_render_gradient_sky_constant_matches_fd(variant):
         g = grads["light.sh"][i]
         print("d mean / d c0[%d]: AD %.6f  FD %.6f" % (i, g, fd))
         assert g == pytest.approx(fd, rel=1e-3)
+
+
+def test_sample_ray_and_wavelengths(variant):
+    scene = mi.load_dict(scene_dict(shsun(sh=sh_string(SKY3), sun_direction=[0, 0.6, 0.8],
+                                          sun_irradiance=10.0, sun_radius=1.0)))
+    e = scene.environment()
+    e.set_scene(scene)  # Mitsuba does not forward it to Python emitters
+    sphere = scene.bbox().bounding_sphere()
+    n = 1 << 16
+    rng = np.random.default_rng(8)
+    u = [mi.Point2f(rng.random((2, n)).astype(np.float32)) for _ in range(2)]
+    ray, w = e.sample_ray(0.0, mi.Float(0.5), u[0], u[1])
+    o = np.asarray(ray.o, np.float64).T - np.asarray(sphere.center, np.float64).ravel()
+    d = np.asarray(ray.d, np.float64).T
+    # Rays start on a disk tangent to the bounding sphere and head into it.
+    assert np.allclose(-(o * d).sum(1), sphere.radius, rtol=1e-4)
+    assert np.all(np.linalg.norm(o - (o * d).sum(1, keepdims=True) * d, axis=1)
+                  <= sphere.radius * (1 + 1e-4))
+    # Unbiased power: E[weight] = π R² ∫ L dω.
+    r = math.radians(1.0)
+    dirs, wq = shm.sphere_quadrature(64)
+    power = (np.maximum(0, shm.eval_sh_numpy(SKY3, dirs)) * wq[:, None]).sum(0) + \
+        10.0 / (math.pi * math.sin(r) ** 2) * 2 * math.pi * (1 - math.cos(r))
+    est = np.asarray(w, np.float64).mean(1) / (math.pi * sphere.radius ** 2)
+    assert np.allclose(est, power, rtol=0.03), (est, power)
+    si = dr.zeros(mi.SurfaceInteraction3f, 2)
+    si.wi = -vec([[0, 0.6, 0.8], [0, 0, -1]])
+    _, spec = e.sample_wavelengths(si, mi.Float([0.3, 0.7]))
+    assert np.allclose(np.asarray(spec), np.asarray(e.eval(si)))
