@@ -1,0 +1,350 @@
+"""LiDAR sweeps as range images, and LiDAR points projected into a camera.
+
+Range image (the layout the ``lidar`` sensor plugin renders)
+-----------------------------------------------------------
+Rows are beams, row 0 the top beam (largest elevation). Columns are azimuth
+steps: column ``c`` of ``W`` looks along
+
+    phi(c) = pi * (1 - 2 (c + 0.5) / W)
+
+so column 0 looks backwards (phi ~ +pi), column W/2 along +x (forward), and
+azimuth (measured from +x towards +y, i.e. to the left) decreases from left
+to right, like a panorama seen from inside. A point falls into column
+``floor((1 - phi/pi) * W/2) mod W``. Where several points fall into one pixel
+the nearest wins (it is the one a ray through that pixel would hit).
+
+Channels: ``intensity`` (in [0, 1]), ``range`` (metres, Euclidean from the
+sensor origin), ``hit`` (True where a return exists; False = ray drop or
+nothing within range) and ``index`` (the point that filled the pixel, -1 if
+none). ``elevations`` holds the per-row elevation table (radians, descending),
+which is what the ``lidar`` sensor's ``elevations`` parameter expects.
+
+Which beam a point belongs to (``assign_beams``)
+-----------------------------------------------
+Elevation computed from the sensor origin is a poor beam label on the HDL-64:
+its lasers sit at different heights and angles on the head, so one laser's
+points spread over ~1-2 degrees of apparent elevation at short range while
+neighbouring lasers are only ~0.4 degrees apart. KITTI stores each sweep in
+firing order, laser by laser: within one laser's ring the azimuth increases
+monotonically (+x towards +y), passing once through the +-pi seam behind the
+car, and the next laser starts again near the forward direction. So
+``method='scan_order'`` starts a new ring wherever the azimuth steps from
+negative to non-negative (crossing the forward direction, not the seam behind)
+after the current ring has passed the seam at least once; the pass-the-seam
+condition keeps azimuth jitter near 0 deg from splitting a ring. Rings are
+then ordered by their median elevation to give rows top to bottom, and each
+row's elevation is that median.
+
+If the point order has been lost (shuffled, cropped, merged sweeps) or a laser
+returned nothing, the ring count differs from ``n_beams``; ``method='auto'``
+then falls back to ``method='elevation'``: cut the sorted elevations at
+their ``n_beams - 1`` widest gaps, refined by 1-D k-means. That is exact for
+sensors whose beams share one origin (synthetic sweeps, most modern
+sensors) and approximate on the HDL-64. When the beam table is known (a
+sensor's spec sheet, the synthetic-scene generator) pass it as
+``beam_elevations``: each point goes to the nearest beam.
+
+Camera projection
+-----------------
+``points_to_image`` maps points ``X`` (sensor frame) to pixels with
+``P @ T_velo_to_cam @ X``. ``P`` is a 3x4 projection in the OpenCV/KITTI
+convention (integer pixel coordinates at pixel centres; pixel (i, j) covers
+u in [i-0.5, i+0.5)). The returned depth is the third homogeneous coordinate,
+i.e. z in the camera that ``P`` describes (for KITTI's ``P_rect_02`` that is
+camera 2, 6 mm further along z than rectified camera 0). ``pixels_to_points``
+inverts it exactly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+
+import numpy as np
+
+from ..errors import UserError
+
+
+# ----------------------------------------------------------------------------
+# Azimuth <-> column
+# ----------------------------------------------------------------------------
+
+def column_azimuth(width: int) -> np.ndarray:
+    """Azimuth (radians) of each column's centre: pi * (1 - 2 (c + 0.5) / W)."""
+    c = np.arange(width, dtype=np.float64)
+    return math.pi * (1.0 - 2.0 * (c + 0.5) / width)
+
+
+def azimuth_to_column(phi, width: int) -> np.ndarray:
+    """Column index of azimuth ``phi`` (radians, any range)."""
+    phi = np.asarray(phi, np.float64)
+    col = np.floor((1.0 - phi / math.pi) * (width / 2.0)).astype(np.int64)
+    return np.mod(col, width)
+
+
+# ----------------------------------------------------------------------------
+# Beam assignment
+# ----------------------------------------------------------------------------
+
+def _elevation(points):
+    p = np.asarray(points, np.float64)
+    return np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))
+
+
+def scan_order_rings(points) -> np.ndarray:
+    """Ring index (firing order, 0-based) of each point of a KITTI-ordered
+    sweep; see the module docstring for the rule."""
+    p = np.asarray(points, np.float64)
+    if p.shape[0] == 0:
+        return np.zeros(0, np.int64)
+    az = np.arctan2(p[:, 1], p[:, 0])
+    step = np.diff(az)
+    # A step below -pi is the pass through the seam behind the sensor.
+    seam_passes = np.concatenate([[0], np.cumsum(step < -math.pi)])
+    candidates = np.nonzero((az[:-1] < 0) & (az[1:] >= 0) & (step < math.pi))[0] + 1
+    starts = []
+    last_seam = 0
+    for i in candidates:
+        if seam_passes[i] > last_seam:
+            starts.append(i)
+            last_seam = seam_passes[i]
+    ring = np.zeros(p.shape[0], np.int64)
+    if starts:
+        ring[np.asarray(starts)] = 1
+        ring = np.cumsum(ring)
+    return ring
+
+
+def cluster_elevations(elevation, n_beams: int, iterations: int = 30) -> np.ndarray:
+    """Label elevations (radians) with up to ``n_beams`` clusters, labels
+    ordered by increasing elevation.
+
+    Start by cutting the sorted elevations at their ``n_beams - 1`` widest
+    gaps (exact when each beam's points share one elevation), then refine
+    with 1-D k-means (Lloyd) iterations, which only matter when beams
+    overlap. Fewer distinct elevations than beams give fewer clusters.
+    """
+    e = np.asarray(elevation, np.float64)
+    if e.size == 0:
+        return np.zeros(0, np.int64)
+    es = np.sort(e)
+    gaps = np.diff(es)
+    k = min(n_beams - 1, int(np.count_nonzero(gaps > 0)))
+    cuts = np.sort(np.argpartition(gaps, -k)[-k:]) if k > 0 else np.zeros(0, np.int64)
+    bounds = 0.5 * (es[cuts] + es[cuts + 1])
+    for _ in range(iterations):
+        labels = np.searchsorted(bounds, e)
+        counts = np.bincount(labels, minlength=k + 1)
+        centres = np.bincount(labels, weights=e, minlength=k + 1) / np.maximum(counts, 1)
+        if np.any(counts == 0):
+            break  # a cluster emptied: keep the previous boundaries
+        new = 0.5 * (centres[1:] + centres[:-1])
+        if np.allclose(new, bounds, atol=1e-9):
+            break
+        bounds = new
+    return np.searchsorted(bounds, e)
+
+
+def assign_beams(points, n_beams: int = 64, method: str = "auto",
+                 beam_elevations=None):
+    """Beam row (0 = top) of every point and the per-row elevation table.
+
+    ``beam_elevations`` (radians, any order): a known beam table; each point
+    then goes to the nearest entry (``method`` is ignored) and the table is
+    returned sorted. Otherwise ``method`` is 'auto', 'scan_order' or
+    'elevation' (see the module docstring).
+
+    Returns ``(rows (N,) int64, elevations (n_beams,) radians descending,
+    method_used)``. If fewer than ``n_beams`` beams are found, the missing
+    rows are appended at the bottom, continuing the mean beam spacing.
+    """
+    elev = _elevation(points)
+    if beam_elevations is not None:
+        table = np.sort(np.asarray(beam_elevations, np.float64))[::-1]
+        mids = 0.5 * (table[1:] + table[:-1])
+        # table descends, so search in the ascending negated midpoints
+        return np.searchsorted(-mids, -elev), table, "table"
+    if method not in ("auto", "scan_order", "elevation"):
+        raise ValueError(f"unknown beam assignment method {method!r}")
+
+    labels, used = None, method
+    if method in ("auto", "scan_order"):
+        rings = scan_order_rings(points)
+        n_rings = int(rings.max()) + 1 if rings.size else 0
+        if n_rings == n_beams:
+            labels, used = rings, "scan_order"
+        elif method == "scan_order":
+            raise UserError(f"scan-order beam detection found {n_rings} rings, "
+                            f"expected {n_beams}; use method='elevation'")
+    if labels is None:
+        labels, used = cluster_elevations(elev, n_beams), "elevation"
+
+    n_found = int(labels.max()) + 1 if labels.size else 0
+    medians = np.array([np.median(elev[labels == k]) for k in range(n_found)])
+    order = np.argsort(-medians, kind="stable")      # rows: top to bottom
+    row_of_label = np.empty(n_found, np.int64)
+    row_of_label[order] = np.arange(n_found)
+    table = medians[order]
+    if n_found < n_beams:
+        step = (table[0] - table[-1]) / (n_found - 1) if n_found > 1 else np.radians(0.4)
+        start = table[-1] if n_found else 0.0
+        table = np.concatenate([table, start - step * np.arange(1, n_beams - n_found + 1)])
+    return row_of_label[labels] if labels.size else labels, table, used
+
+
+# ----------------------------------------------------------------------------
+# Range image
+# ----------------------------------------------------------------------------
+
+@dataclass
+class RangeImage:
+    """A sweep resampled on the beam x azimuth grid (see module docstring)."""
+    intensity: np.ndarray   # (H, W) float32, 0 where no hit
+    range: np.ndarray       # (H, W) float32 metres, 0 where no hit
+    hit: np.ndarray         # (H, W) bool
+    index: np.ndarray       # (H, W) int64 source point index, -1 where none
+    elevations: np.ndarray  # (H,) radians, descending (row 0 = top beam)
+    method: str             # beam assignment: 'scan_order', 'elevation' or 'table'
+
+    @property
+    def shape(self):
+        return self.hit.shape
+
+    @property
+    def azimuths(self) -> np.ndarray:
+        return column_azimuth(self.hit.shape[1])
+
+    def directions(self) -> np.ndarray:
+        """(H, W, 3) unit ray directions through the pixel centres."""
+        e = self.elevations[:, None]
+        a = self.azimuths[None, :]
+        return np.stack(np.broadcast_arrays(np.cos(e) * np.cos(a),
+                                            np.cos(e) * np.sin(a),
+                                            np.sin(e) + 0 * a), axis=-1)
+
+    def to_points(self):
+        """Points (M, 3) and intensities (M,) of the hit pixels, placed along
+        the pixel-centre rays (so within half a pixel of the source points
+        for a single-origin sensor)."""
+        pts = self.directions()[self.hit] * self.range[self.hit][:, None]
+        return pts.astype(np.float32), self.intensity[self.hit]
+
+
+def range_image(points, intensity, width: int = 2048, n_beams: int = 64,
+                method: str = "auto", beam_elevations=None) -> RangeImage:
+    """Resample a sweep into a ``n_beams x width`` range image.
+
+    ``width=2048`` is just below the HDL-64's ~2080 firings per turn at 10 Hz,
+    so nearly every firing gets its own column and few collide.
+    ``beam_elevations`` (a known beam table) overrides ``n_beams`` and
+    ``method``; see :func:`assign_beams`.
+    """
+    points = np.asarray(points, np.float32).reshape(-1, 3)
+    intensity = np.asarray(intensity, np.float32).reshape(-1)
+    if points.shape[0] != intensity.shape[0]:
+        raise ValueError("points and intensity differ in length")
+    H, W = n_beams, width
+    if beam_elevations is not None:
+        n_beams = len(beam_elevations)
+    rows, elevations, used = assign_beams(points, n_beams, method, beam_elevations)
+    cols = azimuth_to_column(np.arctan2(points[:, 1], points[:, 0]), W)
+    rng = np.linalg.norm(points.astype(np.float64), axis=1)
+
+    flat = rows * W + cols
+    # Nearest point per pixel: sort by pixel, then range; keep first of each.
+    order = np.lexsort((rng, flat))
+    first = np.ones(order.size, bool)
+    first[1:] = flat[order][1:] != flat[order][:-1]
+    keep = order[first]
+
+    index = np.full(H * W, -1, np.int64)
+    index[flat[keep]] = keep
+    index = index.reshape(H, W)
+    hit = index >= 0
+    img_i = np.zeros((H, W), np.float32)
+    img_r = np.zeros((H, W), np.float32)
+    img_i[hit] = intensity[index[hit]]
+    img_r[hit] = rng[index[hit]]
+    return RangeImage(img_i, img_r, hit, index, elevations, used)
+
+
+# ----------------------------------------------------------------------------
+# Camera projection
+# ----------------------------------------------------------------------------
+
+@dataclass
+class CameraProjection:
+    """LiDAR points seen by a camera: a sparse image plus per-point data."""
+    intensity: np.ndarray   # (H, W) float32, 0 where mask is False
+    depth: np.ndarray       # (H, W) float32 camera z, 0 where mask is False
+    mask: np.ndarray        # (H, W) bool, True where a point landed
+    uv: np.ndarray          # (N, 2) float64 pixel coordinates of every point
+    point_depth: np.ndarray  # (N,) float64 camera z of every point
+    in_image: np.ndarray    # (N,) bool: in front (z > min_depth) and inside
+
+
+def _as_transform(T, name):
+    T = np.asarray(T, np.float64)
+    if T.shape == (3, 4):
+        T = np.vstack([T, [0, 0, 0, 1]])
+    if T.shape != (4, 4):
+        raise ValueError(f"{name} must be 4x4 or 3x4, got {T.shape}")
+    return T
+
+
+def points_to_image(points, intensities, T_velo_to_cam, P, image_size,
+                    min_depth: float = 0.1) -> CameraProjection:
+    """Project sensor-frame points into an image.
+
+    ``image_size`` is ``(width, height)`` as in KITTI's ``S_rect``. Points
+    with camera depth <= ``min_depth`` or outside the image are kept out of
+    the sparse maps; where several points share a pixel the nearest wins.
+    """
+    W, H = int(image_size[0]), int(image_size[1])
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    inten = np.asarray(intensities, np.float32).reshape(-1)
+    T = _as_transform(T_velo_to_cam, "T_velo_to_cam")
+    P = np.asarray(P, np.float64).reshape(3, 4)
+
+    hom = np.hstack([pts, np.ones((pts.shape[0], 1))])
+    proj = hom @ (P @ T).T
+    w = proj[:, 2]
+    front = w > min_depth
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = proj[:, :2] / np.where(front, w, 1.0)[:, None]
+    uv[~front] = np.nan
+    px = np.floor(uv + 0.5)
+    inside = front & (px[:, 0] >= 0) & (px[:, 0] < W) & (px[:, 1] >= 0) & (px[:, 1] < H)
+
+    sel = np.nonzero(inside)[0]
+    flat = px[sel, 1].astype(np.int64) * W + px[sel, 0].astype(np.int64)
+    order = np.lexsort((w[sel], flat))
+    first = np.ones(order.size, bool)
+    first[1:] = flat[order][1:] != flat[order][:-1]
+    keep = order[first]
+
+    img_i = np.zeros(H * W, np.float32)
+    img_d = np.zeros(H * W, np.float32)
+    mask = np.zeros(H * W, bool)
+    img_i[flat[keep]] = inten[sel[keep]]
+    img_d[flat[keep]] = w[sel[keep]]
+    mask[flat[keep]] = True
+    return CameraProjection(img_i.reshape(H, W), img_d.reshape(H, W),
+                            mask.reshape(H, W), uv, w, inside)
+
+
+def pixels_to_points(uv, depth, T_velo_to_cam, P) -> np.ndarray:
+    """Inverse of the projection: pixel coordinates (N, 2) and camera depth
+    (N,) -> points (N, 3) in the sensor frame.
+
+    With ``P = [M | p]``: ``M X + p = w (u, v, 1)``, so
+    ``X = M^-1 (w (u, v, 1) - p)`` in the frame ``T_velo_to_cam`` maps to.
+    """
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    w = np.asarray(depth, np.float64).reshape(-1)
+    P = np.asarray(P, np.float64).reshape(3, 4)
+    T = _as_transform(T_velo_to_cam, "T_velo_to_cam")
+    rhs = np.hstack([uv * w[:, None], w[:, None]]) - P[:, 3]
+    cam = np.linalg.solve(P[:, :3], rhs.T).T
+    hom = np.hstack([cam, np.ones((cam.shape[0], 1))])
+    return (hom @ np.linalg.inv(T).T)[:, :3]
