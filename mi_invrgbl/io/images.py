@@ -1,0 +1,58 @@
+"""Image writers: multi-channel EXR and tone-mapped PNG, written atomically."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import mitsuba as mi
+
+
+def _atomic(path, write):
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    tmp = path + ".part" + os.path.splitext(path)[1]
+    write(tmp)
+    os.replace(tmp, path)
+
+
+def write_exr(path: str, image: np.ndarray, channels: list[str]) -> None:
+    """Write an H x W x C float image with named channels as an OpenEXR file."""
+    image = np.ascontiguousarray(np.asarray(image, np.float32))
+    if image.ndim == 2:
+        image = image[..., None]
+    if image.shape[2] != len(channels):
+        raise ValueError("%s: %d channels but %d names" % (path, image.shape[2], len(channels)))
+    bitmap = mi.Bitmap(image, mi.Bitmap.PixelFormat.MultiChannel, list(channels))
+    _atomic(path, lambda p: bitmap.write(p, mi.Bitmap.FileFormat.OpenEXR))
+
+
+def read_exr(path: str) -> tuple[np.ndarray, list[str]]:
+    """Read an EXR into (H x W x C array, channel names)."""
+    bitmap = mi.Bitmap(path)
+    names = [f.name for f in bitmap.struct_()]
+    return np.array(bitmap, np.float32).reshape(bitmap.height(), bitmap.width(), -1), names
+
+
+def write_png(path: str, linear_rgb: np.ndarray, exposure: float = 1.0) -> None:
+    """Write linear RGB (or a single channel) as an 8-bit sRGB PNG."""
+    img = np.clip(np.nan_to_num(np.asarray(linear_rgb, np.float32) * exposure), 0.0, 1.0)
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[..., 0]
+    srgb = np.where(img <= 0.0031308, img * 12.92, 1.055 * np.power(img, 1 / 2.4) - 0.055)
+    data = np.ascontiguousarray((srgb * 255 + 0.5).astype(np.uint8))
+    fmt = mi.Bitmap.PixelFormat.Y if data.ndim == 2 else mi.Bitmap.PixelFormat.RGB
+    bitmap = mi.Bitmap(data, fmt)
+    _atomic(path, lambda p: bitmap.write(p, mi.Bitmap.FileFormat.PNG))
+
+
+def write_false_colour_png(path: str, values: np.ndarray, mask: np.ndarray | None = None,
+                           vmax: float | None = None) -> None:
+    """Write a single channel (range, intensity) as a viewable grey PNG (gamma 2.2)."""
+    v = np.nan_to_num(np.asarray(values, np.float32))
+    if mask is not None:
+        v = np.where(mask, v, 0.0)
+    top = vmax if vmax else (np.percentile(v[v > 0], 99) if np.any(v > 0) else 1.0)
+    grey = np.clip(v / max(top, 1e-12), 0, 1) ** (1 / 2.2)
+    data = np.ascontiguousarray((grey * 255 + 0.5).astype(np.uint8))
+    bitmap = mi.Bitmap(data, mi.Bitmap.PixelFormat.Y)
+    _atomic(path, lambda p: bitmap.write(p, mi.Bitmap.FileFormat.PNG))
