@@ -72,7 +72,7 @@ class GaussiansDoc:
 
 
 def _tensor_prop(props, name):
-    if not props.has_property(name):
+    if name not in props:
         return None
     value = props.get(name)
     try:
@@ -83,7 +83,7 @@ def _tensor_prop(props, name):
 
 def cloud_from_props(props) -> GaussianCloud:
     """Build the Gaussian cloud named by a plugin's properties (file or tensors)."""
-    if props.has_property("filename"):
+    if ("filename" in props):
         path = str(props.get("filename"))
         resolved = mi.Thread.thread().file_resolver().resolve(path)
         # str(): Mitsuba's filesystem.path is not os.PathLike (os.fspath raised
@@ -179,7 +179,7 @@ def make_gaussians(props):
     """Plugin factory: a Mitsuba ``ellipsoids`` shape with the material fields."""
     try:
         cloud = cloud_from_props(props)
-        if props.has_property("to_world"):
+        if ("to_world" in props):
             m = np.array(props.get("to_world").matrix, np.float64).reshape(4, 4)
             cloud = apply_transform(cloud, m)
     except GaussianFileError as exc:

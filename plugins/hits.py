@@ -141,13 +141,25 @@ class HitList:
     count: mi.UInt32           # (n_rays,) Gaussians recorded per ray
     surface: mi.PreliminaryIntersection3f  # first opaque hit behind them
     surface_valid: mi.Bool     # (n_rays,)
+    index: mi.UInt32 = None    # flat slots that hold a Gaussian (compacted)
+
+    def __post_init__(self):
+        if self.index is None:
+            # Shading touches only occupied slots: rays see far fewer Gaussians
+            # than max_hits on average, so this saves most of the work.
+            self.index = dr.compress(self.node_ids != 0)
+            if dr.width(self.index) == 0:
+                # No Gaussian was hit: keep one empty slot (node id 0, so
+                # inactive) so that every per-hit array has a valid size.
+                self.index = dr.zeros(mi.UInt32, 1)
 
     @property
-    def hit_mask(self):
-        return self.node_ids != 0
+    def hit_count(self) -> int:
+        return dr.width(self.index)
 
     def ray_index(self):
-        return dr.arange(mi.UInt32, self.n_rays * self.max_hits) // self.max_hits
+        """Ray of each compacted hit."""
+        return self.index // self.max_hits
 
     def surface_interaction(self, rays):
         """Full SurfaceInteraction3f at the opaque hits (invalid elsewhere)."""
@@ -217,7 +229,7 @@ def trace(scene, rays, max_hits=64, min_transmittance=1e-3, nodes=None):
 
 
 def expand_rays(rays, hits: HitList):
-    """Per-hit copies (length n_rays * max_hits) of each ray's origin and direction."""
+    """Per-hit copies (one per compacted hit) of each ray's origin and direction."""
     idx = hits.ray_index()
     o = dr.gather(mi.Point3f, rays.o, idx)
     d = dr.gather(mi.Vector3f, rays.d, idx)
@@ -226,52 +238,70 @@ def expand_rays(rays, hits: HitList):
 
 @dataclass
 class GaussianHits:
-    """Differentiable per-hit quantities (flat, length n_rays * max_hits)."""
+    """Differentiable per-hit quantities, one entry per compacted hit."""
     alpha: mi.Float
     t: mi.Float            # distance from the ray origin to the response peak
     normal: mi.Vector3f    # unit normal facing the ray
     cos_theta: mi.Float    # |n . d|
     active: mi.Bool
+    node_ids: mi.UInt32
+    prims: mi.UInt32
+    ray: mi.UInt32         # ray of each hit
+    slot: mi.UInt32        # flat slot (ray * max_hits + k)
+    n_rays: int
+    max_hits: int
 
 
 def eval_gaussian_hits(scene_or_nodes, rays, hits: HitList):
     """Per-hit opacity, peak distance and ray-facing normal (differentiable)."""
     nodes = scene_or_nodes if isinstance(scene_or_nodes, list) else gaussian_nodes(scene_or_nodes)
-    active = hits.hit_mask
+    node_ids = dr.gather(mi.UInt32, hits.node_ids, hits.index)
+    prims = dr.gather(mi.UInt32, hits.prims, hits.index)
+    active = node_ids != 0
     o, d = expand_rays(rays, hits)
-    center, scale, quat, opacity = gather_geometry(nodes, hits.node_ids, hits.prims, active)
+    center, scale, quat, opacity = gather_geometry(nodes, node_ids, prims, active)
     alpha, t_peak, axis = gaussian_response(center, scale, quat, opacity, o, d)
     normal = axis
     has_normal = mi.Bool(False)
     for node in nodes:
         if "normal" in node.attributes:
-            has_normal |= hits.node_ids == node.id
-    stored = gather_attribute(nodes, "normal", hits.node_ids, hits.prims, active & has_normal)
+            has_normal |= node_ids == node.id
+    stored = gather_attribute(nodes, "normal", node_ids, prims, active & has_normal)
     normal = dr.select(has_normal, stored, normal)
     normal = normal * dr.rsqrt(dr.maximum(dr.squared_norm(normal), 1e-20))
     cos_d = dr.dot(normal, d)
     normal = dr.select(cos_d > 0, -normal, normal)  # two-sided: face the ray
     alpha = dr.select(active, alpha, 0.0)
-    return GaussianHits(alpha, dr.maximum(t_peak, 0.0), normal, dr.abs(cos_d), active)
+    return GaussianHits(alpha, dr.maximum(t_peak, 0.0), normal, dr.abs(cos_d), active,
+                        node_ids, prims, hits.ray_index(), hits.index, hits.n_rays, hits.max_hits)
 
 
-def blend_weights(alpha, max_hits):
-    """Front-to-back weights ``w_k`` and the transmittance left behind the hits.
+def blend_weights(g: GaussianHits):
+    """Front-to-back weights ``w_k`` (per hit) and the transmittance left behind (per ray).
 
-    Returns ``(w, t_after)`` with ``w`` flat (per hit) and ``t_after`` per ray.
+    ``w_k = a_k prod_{j<k} (1 - a_j)``, computed in log space as a blocked
+    exclusive prefix sum over each ray's ``max_hits`` slots.
     """
-    log_t = dr.log(1.0 - alpha)
-    t_before = dr.exp(dr.block_prefix_sum(log_t, max_hits, exclusive=True))
-    t_after = dr.exp(dr.block_sum(log_t, max_hits))
-    return alpha * t_before, t_after
+    K = g.max_hits
+    log_t = dr.zeros(mi.Float, g.n_rays * K)
+    dr.scatter(log_t, dr.log(1.0 - g.alpha), g.slot)
+    t_before = dr.exp(dr.gather(mi.Float, dr.block_prefix_sum(log_t, K, exclusive=True), g.slot))
+    t_after = dr.exp(dr.block_sum(log_t, K))
+    return g.alpha * t_before, t_after
 
 
-def composite(weights, values, max_hits):
-    """Per-ray sum of ``w_k * value_k`` (values flat, Float or 3-vectors)."""
-    if isinstance(values, (mi.Float, float, int)):
-        return dr.block_sum(weights * values, max_hits)
+def composite(g: GaussianHits, weights, values):
+    """Per-ray sum of ``w_k * value_k`` (values per hit: Float or 3-vectors)."""
+    def reduce(v):
+        out = dr.zeros(mi.Float, g.n_rays)
+        dr.scatter_reduce(dr.ReduceOp.Add, out, v, g.ray)
+        return out
+    if isinstance(values, (float, int)):
+        values = mi.Float(values)
     v = weights * values
-    return type(values)(*[dr.block_sum(v[i], max_hits) for i in range(len(v))])
+    if isinstance(v, mi.Float):
+        return reduce(v)
+    return type(v)(*[reduce(v[i]) for i in range(len(v))])
 
 
 def ad_integrator_base():

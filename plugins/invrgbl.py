@@ -102,7 +102,7 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
     def shade_gaussian_hits(self, lighting, nodes, rays, hit_list, g):
         """Per-hit colour and materials (flat arrays, differentiable)."""
         active = g.active
-        ids, prims = hit_list.node_ids, hit_list.prims
+        ids, prims = g.node_ids, g.prims
         albedo = mi.Color3f(hitlib.gather_attribute(nodes, "albedo", ids, prims, active))
         tau = hitlib.gather_attribute(nodes, "roughness", ids, prims, active)
         rho_l = hitlib.gather_attribute(nodes, "lidar_albedo", ids, prims, active)
@@ -207,15 +207,15 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
             lighting = GaussianLighting(scene, nodes, self.samples, self.cache,
                                         trace_sun=self.sun_visibility == "trace")
             g = hitlib.eval_gaussian_hits(nodes, rays, hit_list)
-            w, t_after = hitlib.blend_weights(g.alpha, K)
+            w, t_after = hitlib.blend_weights(g)
             colour, albedo, n, tau, rho_l = self.shade_gaussian_hits(lighting, nodes, rays, hit_list, g)
-            L = hitlib.composite(w, colour, K)
-            albedo_aov = hitlib.composite(w, albedo, K)
-            normal_aov = hitlib.composite(w, n, K)
-            tau_aov = hitlib.composite(w, tau, K)
-            rho_aov = hitlib.composite(w, rho_l, K)
-            depth_aov = hitlib.composite(w, g.t, K)
-            alpha = hitlib.composite(w, mi.Float(1.0), K)
+            L = hitlib.composite(g, w, colour)
+            albedo_aov = hitlib.composite(g, w, albedo)
+            normal_aov = hitlib.composite(g, w, n)
+            tau_aov = hitlib.composite(g, w, tau)
+            rho_aov = hitlib.composite(g, w, rho_l)
+            depth_aov = hitlib.composite(g, w, g.t)
+            alpha = hitlib.composite(g, w, mi.Float(1.0))
 
         si = hit_list.surface_interaction(rays)
         surf = hit_list.surface_valid & si.is_valid()

@@ -170,22 +170,22 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
         K = hit_list.max_hits
         power = self._laser_power(scene)
         g = hitlib.eval_gaussian_hits(nodes, rays, hit_list)
-        w, t_after = hitlib.blend_weights(g.alpha, K)
+        w, t_after = hitlib.blend_weights(g)
         active = g.active
-        rho = hitlib.gather_attribute(nodes, "lidar_albedo", hit_list.node_ids, hit_list.prims, active)
-        tau = hitlib.gather_attribute(nodes, "roughness", hit_list.node_ids, hit_list.prims, active)
+        rho = hitlib.gather_attribute(nodes, "lidar_albedo", g.node_ids, g.prims, active)
+        tau = hitlib.gather_attribute(nodes, "roughness", g.node_ids, g.prims, active)
         near = mi.Float(near)
         if dr.width(near) != dr.width(rays.o):
             near = dr.full(mi.Float, near[0], dr.width(rays.o))
-        ray_of_hit = hit_list.ray_index()
+        ray_of_hit = g.ray
         dist = g.t + dr.gather(mi.Float, near, ray_of_hit)
         row_hits = dr.gather(mi.UInt32, row, ray_of_hit)
         factor = brdf.lidar_return_factor(rho, tau, g.cos_theta, self.model, self.f0)
         intensity_k = self._response(factor, g.cos_theta, dist, row_hits, power)
-        intensity = hitlib.composite(w, intensity_k, K)
-        alpha = hitlib.composite(w, mi.Float(1.0), K)
-        depth_sum = hitlib.composite(w, dist, K)
-        rho_sum = hitlib.composite(w, rho, K)
+        intensity = hitlib.composite(g, w, intensity_k)
+        alpha = hitlib.composite(g, w, mi.Float(1.0))
+        depth_sum = hitlib.composite(g, w, dist)
+        rho_sum = hitlib.composite(g, w, rho)
 
         # Opaque surface behind the Gaussians.
         si = hit_list.surface_interaction(rays)

@@ -155,7 +155,7 @@ def transmittance(scene, origins, directions, maxt, nodes):
     rays.maxt = maxt
     h = hitlib.trace(scene, rays, SHADOW_MAX_HITS, 1e-3, nodes)
     g = hitlib.eval_gaussian_hits(nodes, rays, h)
-    _, t_after = hitlib.blend_weights(g.alpha, SHADOW_MAX_HITS)
+    _, t_after = hitlib.blend_weights(g)
     return dr.select(h.surface_valid, 0.0, t_after)
 
 
