@@ -216,16 +216,17 @@ def test_dense_gaussian_layer_matches_mesh_plane(tmp_path):
     assert np.all(g[:, CH_HIT] == 1)
     rel = np.abs(g[:, CH_I] / m[:, CH_I] - 1)
     drange = np.abs(g[:, CH_RANGE] - m[:, CH_RANGE])
-    # Measured (64 beams, theta <= 45 deg): mean rel. intensity error ~1e-3,
-    # max ~3e-3; range error < 1 mm. The residual is (1) the transmittance
+    # Measured (64 beams, theta <= 45 deg): mean rel. intensity error 7e-4
+    # (the layer is always the darker one), max 2.4e-3; range error 0.6 mm;
+    # asserted with a margin: mean < 0.5 %, max < 1 %, range < 2 mm. The residual is (1) the transmittance
     # left behind the layer: each hit's alpha is clamped to 0.99 and
     # traversal stops below min_transmittance = 1e-3, so the weights sum to
     # 1 - T with T up to ~1e-3; intensity is not renormalised by alpha (range
     # is); (2) the layer's thickness: each Gaussian's response peaks where
     # the beam passes closest to its centre in the Gaussian's own metric,
     # a little off z = 0 for oblique beams through off-centre Gaussians.
-    assert rel.mean() < 0.02 and rel.max() < 0.05, (rel.mean(), rel.max())
-    assert drange.max() < 0.01, drange.max()
+    assert rel.mean() < 0.005 and rel.max() < 0.01, (rel.mean(), rel.max())
+    assert drange.max() < 0.002, drange.max()
     assert np.all(g[:, CH_ALPHA] > 0.99)
     assert np.allclose(g[:, CH_RHO], rho, atol=1e-4)
 
