@@ -85,7 +85,7 @@ def cloud_from_props(props) -> GaussianCloud:
     """Build the Gaussian cloud named by a plugin's properties (file or tensors)."""
     if ("filename" in props):
         path = str(props.get("filename"))
-        resolved = mi.Thread.thread().file_resolver().resolve(path)
+        resolved = mi.file_resolver().resolve(path)
         # str(): Mitsuba's filesystem.path is not os.PathLike (os.fspath raised
         # TypeError, so no 'filename' could ever be loaded).
         return read_ply(str(resolved))
