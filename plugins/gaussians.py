@@ -18,6 +18,11 @@ MATERIAL_FIELDS = {"normal": 3, "albedo": 3, "roughness": 1, "lidar_albedo": 1,
 #: Scales below this are raised to it: a zero axis would make the ray-space
 #: transform of the Gaussian singular (division by the scale).
 MIN_SCALE = 1e-6
+#: Smallest axis relative to the longest. Mitsuba's ellipsoid intersector
+#: misses rays and reports entries far too early on flatter Gaussians
+#: (measured: 18 % of rays lost on a 1:1000 layer, none at 1:100 with
+#: 1 cm entry error), so flatter ones are thickened to this ratio.
+MIN_ASPECT = 1e-2
 
 
 class GaussiansDoc:
@@ -60,7 +65,9 @@ class GaussiansDoc:
     The shape is Mitsuba's built-in ``ellipsoids`` (Embree-traversed) with the
     material fields attached as per-primitive attributes, so the ``invrgbl`` and
     ``lidar_return`` integrators alpha-blend it front to back and any other
-    integrator sees plain ellipsoids. Zero-size axes are raised to 1e-6;
+    integrator sees plain ellipsoids. Zero-size axes are raised to 1e-6 and
+    axes shorter than 1/100 of the longest are raised to it (Mitsuba's
+    ellipsoid intersector is unreliable for flatter Gaussians);
     NaN/inf values are refused with an error naming the file and the field.
 
     .. code-block:: xml
@@ -135,7 +142,9 @@ def ellipsoids_dict(cloud: GaussianCloud, shape_id: str = "", extent: float = 3.
     cloud = cloud.with_defaults()
     n = len(cloud)
     q = cloud.quaternions  # w x y z -> Dr.Jit's x y z w order inside 'data'
-    data = np.concatenate([cloud.centers, np.maximum(cloud.scales, MIN_SCALE),
+    scales = np.maximum(cloud.scales, MIN_SCALE)
+    scales = np.maximum(scales, MIN_ASPECT * scales.max(axis=1, keepdims=True))
+    data = np.concatenate([cloud.centers, scales,
                            q[:, 1:4], q[:, :1]], axis=1).astype(np.float32)
     normals = cloud.normals / np.maximum(np.linalg.norm(cloud.normals, axis=1, keepdims=True), 1e-12)
     d = {
