@@ -208,14 +208,17 @@ class GaussianLighting:
                 for kind, emitter in self.lights:
                     d, _, dist = light_at(kind, emitter, dr.detach(table.center))
                     if kind == "sun" and not trace_sun:
-                        vis = hitlib.gather_attribute(nodes, "sun_visibility", table.ids,
-                                                      table.prims, mi.Bool(True))
+                        # Read the field on every render (below), not cached: it
+                        # may be edited or optimised through mi.traverse, which
+                        # the cache key does not see.
+                        cache.light_visibility.append(None)
+                        continue
                     else:
                         vis = transmittance(scene, dr.detach(table.center), d,
                                             dr.select(dr.isfinite(dist), dist * (1 - 1e-4), dr.inf),
                                             nodes)
                     cache.light_visibility.append(dr.detach(vis))
-                dr.eval(cache.sky_visibility, cache.light_visibility)
+                dr.eval(cache.sky_visibility, [v for v in cache.light_visibility if v is not None])
                 cache.key = key
         self.cache = cache
         # v_i L_sky(w_i): differentiable in the sky's coefficients and normals.
@@ -225,5 +228,8 @@ class GaussianLighting:
         self.light_dir, self.light_irr = [], []
         for (kind, emitter), vis in zip(self.lights, cache.light_visibility):
             d, irr, _ = light_at(kind, emitter, table.center)
+            if vis is None:  # sun_visibility = attribute: the stored field
+                vis = hitlib.gather_attribute(nodes, "sun_visibility", table.ids,
+                                              table.prims, mi.Bool(True))
             self.light_dir.append(d)
             self.light_irr.append(irr * vis)

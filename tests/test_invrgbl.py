@@ -154,3 +154,269 @@ def test_opaque_gaussian_layer_matches_cooktorrance_mesh_under_path(roughness):
     # catches a wrong lobe, a missing cosine or a missing sun (tens of %).
     assert np.all(mean_rel < 0.02)
     assert p95 < 0.03
+
+
+# ==================================================================
+# 2. Meshes alone: direct lighting == stock path with max_depth 2
+# ==================================================================
+def test_mesh_scene_matches_stock_path_direct_lighting():
+    shapes = {
+        "ball": {"type": "sphere", "center": [-0.6, 0, 0.5], "radius": 0.5,
+                 "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.7, 0.45, 0.3]}}},
+        "gloss": {"type": "sphere", "center": [0.6, 0.2, 0.4], "radius": 0.4,
+                  "bsdf": {"type": "roughplastic", "alpha": 0.2,
+                           "diffuse_reflectance": {"type": "rgb", "value": [0.2, 0.35, 0.6]}}},
+        "floor": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(3),
+                  "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.4, 0.4, 0.38]}}},
+    }
+    cam = camera([0, -4, 2.5], [0, 0, 0.3])
+    img_i, _ = render(dict(shapes, integrator={"type": "invrgbl"}, sky=sky(), sensor=cam), spp=256)
+    # Another seed: an honest MC comparison, not the same sample sequence.
+    img_p, _ = render(dict(shapes, integrator={"type": "path", "max_depth": 2}, sky=sky(),
+                           sensor=cam), spp=256, seed=1)
+    covered = img_i[..., ALPHA] > 0.5
+    assert covered.mean() > 0.6
+    mean_rel = np.abs(img_i[covered][:, RGB].mean(0) / img_p[covered][:, RGB].mean(0) - 1)
+    print("mesh scene mean rel err", mean_rel)
+    # Measured ~0.3 %; 2 % is the MC-noise bound asked of the integrator.
+    assert np.all(mean_rel < 0.02)
+
+
+# ==================================================================
+# 3. Sun shadows: traced from each Gaussian, or read from its field
+# ==================================================================
+SHADOW_SUN = [1.0, 0.0, 1.0]  # 45 degrees: the blob at (1, 0, 1) shadows the origin
+SHADOW_E = (3.0, 3.0, 3.0)
+
+
+def shadow_scene(sun, mode="trace", blob=True, half_shadowed=False):
+    field = (lambda c: (c[:, 1] >= 0).astype(np.float32)) if half_shadowed else None
+    g, _ = layer(extent=2.5, albedo=(0.5, 0.5, 0.5), roughness=0.5, sun_visibility=field)
+    d = {"integrator": {"type": "invrgbl", "samples": 16, "sun_visibility": mode},
+         "ground": g, "sky": sky(sun_irradiance=SHADOW_E if sun else None, sun_direction=SHADOW_SUN),
+         "sensor": camera([0, 0, 5], [0, 0, 0], up=(0, 1, 0), fov=50, size=32)}
+    if blob:
+        d["blob"] = single_gaussian([1, 0, 1], [0.3, 0.3, 0.3])
+    return d
+
+
+def sun_term_closed_form(p, cam_origin=(0, 0, 5)):
+    """E cos(theta_sun) f_r(sun, view) on the ground point p (albedo 0.5, tau 0.5)."""
+    s = np.array(SHADOW_SUN) / np.linalg.norm(SHADOW_SUN)
+    wo = np.asarray(cam_origin, np.float64) - p
+    return SHADOW_E[0] * s[2] * ct_brdf_np(0.5, 0.5, s, wo)[()]
+
+
+def test_blob_casts_sun_shadow_on_gaussian_ground():
+    with_sun, scene = render(shadow_scene(True), spp=4)
+    no_sun, _ = render(shadow_scene(False), spp=4)
+    sun_term = (with_sun - no_sun)[..., 1]
+    p, _ = ground_hits(scene)
+    r = np.linalg.norm(p[..., :2], axis=-1)
+    core = r < 0.15
+    # Lit: far from the shadow and not looking through the blob (its image
+    # falls around ground x = 1.25).
+    lit = ((np.abs(p[..., 1]) > 1.3) & (np.abs(p[..., 1]) < 1.8) & (np.abs(p[..., 0]) < 1.5)
+           & (np.linalg.norm(p[..., :2] - [1.25, 0], axis=-1) > 1.3))
+    assert core.sum() >= 2 and lit.sum() > 50
+    expected = np.array([sun_term_closed_form(q) for q in p[lit]])
+    lit_err = np.abs(sun_term[lit] / expected - 1)
+    core_ratio = sun_term[core].mean() / sun_term_closed_form(np.zeros(3))
+    print("lit sun term err max %.4f, shadow core keeps %.4f of the sun" % (lit_err.max(), core_ratio))
+    # Lit ground: the sun term is the closed form (measured median 5e-4). A
+    # pixel or two that the traversal renders wrongly (Gaussians skipped at
+    # near-equal entry distances, see the layer test) are tolerated by the 90th percentile.
+    assert np.percentile(lit_err, 90) < 0.01
+    # Core: the blob's centre has opacity 0.99, and each pixel blends ground
+    # Gaussians up to ~0.3 away whose shadow rays pass off-centre: measured ~0.05.
+    assert core_ratio < 0.15
+
+
+def test_sun_visibility_attribute_replaces_traced_shadows():
+    with_sun, scene = render(shadow_scene(True, "attribute", half_shadowed=True), spp=4)
+    no_sun, _ = render(shadow_scene(False, "attribute", half_shadowed=True), spp=4)
+    sun_term = (with_sun - no_sun)[..., 1]
+    p, _ = ground_hits(scene)
+    away_from_blob = np.linalg.norm(p[..., :2] - [1.25, 0], axis=-1) > 1.3
+    shadowed = (p[..., 1] < -0.6) & (np.abs(p[..., 0]) < 1.5) & away_from_blob
+    lit = (p[..., 1] > 0.6) & (np.abs(p[..., 0]) < 1.5) & (p[..., 1] < 1.8) & away_from_blob
+    expected = np.array([sun_term_closed_form(q) for q in p[lit]])
+    # The field is 0 for y < 0: no sun there at all.
+    assert np.percentile(np.abs(sun_term[shadowed]), 90) < 1e-4 * expected.mean()
+    # y > 0: fully lit, also where the traced blob shadow would fall (x ~ 0).
+    assert np.percentile(np.abs(sun_term[lit] / expected - 1), 90) < 0.01
+
+    # Editing the field through mi.traverse must take effect on the next render.
+    params = mi.traverse(scene)
+    params["ground.sun_visibility"] = dr.ones(type(params["ground.sun_visibility"]),
+                                              dr.width(params["ground.sun_visibility"]))
+    params.update()
+    edited = np.array(mi.render(scene, spp=4))
+    assert np.all((edited - no_sun)[shadowed, 1] > 0.5 * sun_term[lit].mean())
+
+
+# ==================================================================
+# 4. Point and spot lights (night scenes): closed form
+# ==================================================================
+@pytest.mark.parametrize("case", ["point_above", "point_oblique", "spot_above"])
+def test_point_and_spot_light_on_gaussian_match_closed_form(case):
+    I, albedo, tau = 10.0, 0.5, 0.5
+    light_pos = np.array([0.0, 0.0, 2.0])
+    centre = np.array([1.5, 0.0, 0.0]) if case == "point_oblique" else np.zeros(3)
+    if case == "spot_above":
+        light = {"type": "spot", "intensity": {"type": "rgb", "value": I},
+                 "cutoff_angle": 30.0, "beam_width": 20.0,
+                 "to_world": mi.ScalarTransform4f().look_at(light_pos, [0, 0, 0], [0, 1, 0])}
+    else:
+        light = {"type": "point", "position": light_pos.tolist(),
+                 "intensity": {"type": "rgb", "value": I}}
+    # Camera straight above the Gaussian; odd size so the middle pixel's centre
+    # looks exactly at it. No environment: the light is the only source.
+    cam_pos = centre + [0, 0, 1]
+    img, _ = render({"integrator": {"type": "invrgbl", "samples": 16},
+                     # 50:1 disc: much flatter ones (500:1) are missed by the
+                     # ellipsoid intersector at normal incidence.
+                     "g": single_gaussian(centre.tolist(), [0.5, 0.5, 1e-2], albedo=(albedo,) * 3,
+                                          roughness=tau),
+                     "light": light,
+                     "sensor": camera(cam_pos.tolist(), centre.tolist(), up=(0, 1, 0), fov=5, size=15)},
+                    spp=4)
+    px = img[7, 7]
+    to_light = light_pos - centre
+    d2 = to_light @ to_light
+    cos = to_light[2] / math.sqrt(d2)
+    expected = I * cos / d2 * ct_brdf_np(albedo, tau, to_light, [0, 0, 1])
+    got = px[RGB] / px[ALPHA]  # the Gaussian's colour (its opacity is 0.99 there)
+    print(case, got, expected)
+    assert px[ALPHA] > 0.98
+    assert np.allclose(got, expected, rtol=0.01)
+
+
+# ==================================================================
+# 5. AOVs
+# ==================================================================
+def test_aovs_of_opaque_gaussian_layer():
+    g, _ = layer(albedo=(0.6, 0.4, 0.3), roughness=0.3, lidar_albedo=0.35)
+    # An emitting plane below the layer: the only light, and Gaussians are not
+    # lit by area lights, so the colour is exactly the residual transmittance.
+    backlight = {"type": "rectangle",
+                 "to_world": mi.ScalarTransform4f().translate([0, 0, -0.5]).scale(4),
+                 "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 1.0}}}
+    # min_transmittance below the layer's residual so the ray reaches the plane.
+    img, scene = render({"integrator": {"type": "invrgbl", "samples": 4, "min_transmittance": 1e-7},
+                         "ground": g,
+                         "back": backlight,
+                         "sensor": camera([0, 0, 3], [0, 0, 0], up=(0, 1, 0), fov=40, size=16)}, spp=4)
+    p, t = ground_hits(scene)
+    m = (np.abs(p[..., 0]) < 1.6) & (np.abs(p[..., 1]) < 1.6)
+    px = img[m]
+    a = px[:, ALPHA]
+    assert np.all(a > 0.98)
+    # alpha == 1 - residual transmittance (seen as the backlight's radiance).
+    print("alpha + backlight - 1: max abs %.2e" % np.abs(a + px[:, 1] - 1).max())
+    # (90 % of pixels: isolated traversal outliers, see the layer test.)
+    assert np.percentile(np.abs(a + px[:, 1] - 1), 90) < 2e-4
+    # Material AOVs are alpha-weighted; the mesh behind adds (1 - alpha) * its own.
+    def p90(x, want):
+        return np.percentile(np.abs(x - np.asarray(want)), 90)
+    assert p90(px[:, ALBEDO] / a[:, None], [0.6, 0.4, 0.3]) < 2e-3
+    assert p90(px[:, NORMAL] / a[:, None], [0, 0, 1]) < 2e-3
+    assert p90(px[:, ROUGH] / a, 0.3) < 2e-3
+    assert p90(px[:, LIDAR] / a, 0.35) < 2e-3
+    # Depth: distance along the ray to the layer (pixel-centre rays, box filter
+    # over a pixel: < 0.5 % spread at this resolution).
+    # (NaN depths here are a known bug, pinned by test_depth_aov_is_finite_behind_opaque_layer.)
+    ok = np.isfinite(px[:, DEPTH])
+    assert ok.mean() > 0.5
+    assert np.percentile(np.abs(px[ok, DEPTH] / t[m][ok] - 1), 90) < 0.01
+
+
+@pytest.mark.xfail(strict=True, reason="depth AOV is NaN on some pixels when a ray passes an "
+                   "opaque Gaussian layer (min_transmittance 1e-7) and reaches a mesh behind it")
+def test_depth_aov_is_finite_behind_opaque_layer():
+    g, _ = layer()
+    backlight = {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([0, 0, -0.5]).scale(4),
+                 "bsdf": {"type": "diffuse"}}
+    img, _ = render({"integrator": {"type": "invrgbl", "samples": 4, "min_transmittance": 1e-7},
+                     "ground": g, "back": backlight,
+                     "sensor": camera([0, 0, 3], [0, 0, 0], up=(0, 1, 0), fov=40, size=16)}, spp=4)
+    assert np.all(np.isfinite(img))
+
+
+@pytest.mark.parametrize("bsdf", ["cooktorrance", "diffuse"])
+def test_aovs_of_mesh(bsdf):
+    if bsdf == "cooktorrance":
+        b = {"type": "cooktorrance", "albedo": [0.2, 0.5, 0.7], "roughness": 0.3, "lidar_albedo": 0.45}
+        want_albedo, want_tau, want_lidar = [0.2, 0.5, 0.7], 0.3, 0.45
+    else:
+        b = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.2, 0.5, 0.7]}}
+        # Any other BSDF: diffuse reflectance, roughness 1, LiDAR albedo = luminance.
+        want_albedo, want_tau = [0.2, 0.5, 0.7], 1.0
+        want_lidar = 0.2126 * 0.2 + 0.7152 * 0.5 + 0.0722 * 0.7
+    img, scene = render({"integrator": {"type": "invrgbl"}, "sky": sky(),
+                         "m": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(5), "bsdf": b},
+                         "sensor": camera([0, 0, 3], [0, 0, 0], up=(0, 1, 0), fov=40, size=16)}, spp=4)
+    _, t = ground_hits(scene)
+    assert np.allclose(img[..., ALPHA], 1.0)
+    assert np.allclose(img[..., ALBEDO], want_albedo, atol=1e-5)
+    assert np.allclose(img[..., NORMAL], [0, 0, 1], atol=1e-5)
+    assert np.allclose(img[..., ROUGH], want_tau, atol=1e-5)
+    assert np.allclose(img[..., LIDAR], want_lidar, atol=1e-4)
+    assert np.allclose(img[..., DEPTH], t, rtol=0.01)
+
+
+# ==================================================================
+# 6. Stability
+# ==================================================================
+def test_zero_opacity_gaussians_render_the_background():
+    g, _ = layer(extent=1.0, opacity=0.0)
+    cam = camera([0, -3, 3], [0, 0, 0], size=16)
+    img, _ = render({"integrator": {"type": "invrgbl", "samples": 8}, "ground": g, "sky": sky(),
+                     "sensor": cam}, spp=2)
+    bg, _ = render({"integrator": {"type": "invrgbl", "samples": 8}, "sky": sky(), "sensor": cam}, spp=2)
+    assert np.allclose(img[..., RGB], bg[..., RGB], rtol=1e-5, atol=1e-6)
+    assert np.all(img[..., ALPHA] == 0)
+
+
+@pytest.mark.parametrize("case", ["zero_size", "huge", "tau_zero", "tau_one", "grazing"])
+def test_degenerate_inputs_give_finite_output(case):
+    scale, tau = 0.1, 0.4
+    origin, target = [0, -3, 3], [0, 0, 0]
+    if case == "zero_size":
+        scale = 0.0
+    elif case == "huge":
+        scale = 1e3
+    elif case == "tau_zero":
+        tau = 0.0
+    elif case == "tau_one":
+        tau = 1.0
+    elif case == "grazing":
+        origin, target = [0, -3, 0.002], [0, 0, 0]
+    g, c = layer(extent=1.0, roughness=tau)
+    n = c.shape[0]
+    g["scales"] = mi.TensorXf(np.tile([[scale, scale, scale * 1e-2]], (n, 1)).astype(np.float32))
+    img, _ = render({"integrator": {"type": "invrgbl", "samples": 8}, "ground": g, "sky": sky(),
+                     "blob": single_gaussian([0, 0, 0.5], [0.2, 0.2, 0.2]),
+                     "sensor": camera(origin, target, size=16)}, spp=2)
+    assert np.all(np.isfinite(img))
+    assert np.all(img[..., RGB] >= 0)
+
+
+def test_nan_parameters_are_refused_with_a_clear_message(tmp_path):
+    g, c = layer(extent=0.3)
+    bad = c.copy()
+    bad[3, 1] = np.nan
+    g["centers"] = mi.TensorXf(bad)
+    with pytest.raises(Exception, match=r"centers.*NaN.*index 3"):
+        mi.load_dict(g)
+
+    from mi_invrgbl.plugins.gaussian_ply import GaussianCloud, write_ply
+    n = 4
+    cloud = GaussianCloud(centers=np.zeros((n, 3), np.float32), scales=np.full((n, 3), 0.1, np.float32),
+                          quaternions=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+                          opacities=np.full(n, 0.5, np.float32),
+                          albedo=np.array([[0.5, np.nan, 0.5]] + [[0.5] * 3] * 3, np.float32))
+    path = str(tmp_path / "nan.ply")
+    write_ply(path, cloud)
+    with pytest.raises(Exception, match=r"nan\.ply.*albedo.*NaN"):
+        mi.load_dict({"type": "gaussians", "filename": path})
