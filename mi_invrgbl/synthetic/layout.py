@@ -9,8 +9,12 @@ footprint) and placed per frame by :mod:`.trajectory`.
 
 Besides the road, the street deliberately has structure in depth (buildings
 set back by different amounts, protruding windows and balconies, a row of
-poles): LiDAR odometry finds nothing to lock on in a corridor of flat
-facades.
+poles and trees every ~15 m, gaps between buildings): LiDAR odometry finds
+nothing to lock on in a corridor of flat facades. Measured with KISS-ICP
+1.3 (voxel 0.5 m) on 24 default frames: with points more than 0.3 m above
+the road it recovers the 23 m of travel to within 0.1 m; on full sweeps the
+perfectly flat road's rings (which move with the sensor) dominate and it
+reports almost no forward motion, so drop ground points before odometry.
 """
 
 from __future__ import annotations
@@ -115,7 +119,7 @@ def car_wheels() -> list:
 
 def _facade(index, side, x0, x1, rng, materials, windows):
     """One building: a box with a varied setback, protruding windows and balconies."""
-    setback = rng.uniform(8.5, 11.5)
+    setback = rng.uniform(8.5, 13.0)
     depth = rng.uniform(6.0, 10.0)
     height = rng.uniform(5.0, 14.0 if side > 0 else 18.0)
     y_front = side * setback
@@ -155,7 +159,7 @@ def _buildings(rng, x_start, x_end, materials, windows):
                 continue
             parts.append(_facade(index, side, x, x1, rng, materials, windows))
             index += 1
-            x = x1 + (rng.uniform(1.5, 4.0) if rng.random() < 0.3 else 0.0)
+            x = x1 + (rng.uniform(1.5, 5.0) if rng.random() < 0.5 else 0.0)
     return parts
 
 
@@ -205,14 +209,15 @@ def build(frames: int, step: float, rng: np.random.Generator, sun_a) -> Layout:
     parts.append(Part("windows", merge(windows), "windows"))
 
     # Poles: the hero pole left of the road near the start (its shadow crosses
-    # the road at time A), then one every ~25 m, alternating sides.
+    # the road at time A), then one every ~14 m, alternating sides: posts
+    # across the line of travel are what LiDAR odometry measures motion by.
     pole_meshes, lamps = [], []
     spots = [(10.0, 1), (28.0, -1)]
-    x = 50.0
+    x = 42.0
     side = 1
     while x < x_end - 10:
-        spots.append((x + rng.uniform(-3, 3), side))
-        x += 25.0
+        spots.append((x + rng.uniform(-2, 2), side))
+        x += 14.0
         side = -side
     for px, side in spots:
         meshes, lamp = _pole(px, side * (ROAD_HALF + 0.6), -side)
@@ -221,7 +226,14 @@ def build(frames: int, step: float, rng: np.random.Generator, sun_a) -> Layout:
     parts.append(Part("poles", merge(pole_meshes), "poles"))
 
     trunks, crowns = [], []
-    for tx, ty in ((22.0, ROAD_HALF + 1.5), (40.0 + rng.uniform(-2, 2), -(ROAD_HALF + 1.5))):
+    # The hero tree (left, near the start), then a tree every ~16 m, alternating sides.
+    tree_spots = [(22.0, ROAD_HALF + 1.5)]
+    x, side = 36.0, -1
+    while x < x_end - 10:
+        tree_spots.append((x + rng.uniform(-2, 2), side * (ROAD_HALF + 1.5)))
+        x += 16.0
+        side = -side
+    for tx, ty in tree_spots:
         t, c = _tree(tx, ty)
         trunks.append(t)
         crowns.append(c)
