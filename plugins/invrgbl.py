@@ -227,7 +227,7 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
             normal_aov += s_w * si.sh_frame.n
             tau_aov += s_w * t
             rho_aov += s_w * r
-            depth_aov += s_w * si.t
+            depth_aov += s_w * dr.select(surf, si.t, 0.0)  # si.t is inf off the surface: 0 * inf = NaN
             alpha += s_w
 
         # Background: the sky seen through whatever transmittance is left.
