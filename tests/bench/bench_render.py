@@ -227,14 +227,17 @@ def shadow_rays(scene, integrator):
     from mi_invrgbl.plugins import lighting as L
     nodes = hitlib.gaussian_nodes(scene)
     with dr.suspend_grad():
-        light = L.GaussianLighting(scene, nodes, integrator.samples, L.LightingCache())
-        table = light.table
+        # As GaussianLighting does, without filling (i.e. tracing) a cache.
+        table = L.GaussianTable.build(nodes).load_geometry()
         G, M = table.total, integrator.samples
-        origins = dr.gather(mi.Point3f, table.center, dr.arange(mi.UInt32, G * M) // M)
-        sky = mi.Ray3f(origins, dr.detach(light.sky_dirs))
+        per = dr.arange(mi.UInt32, G * M) // M
+        frames = mi.Frame3f(dr.gather(mi.Vector3f, table.normal, per))
+        dirs = frames.to_world(L.fibonacci_hemisphere(M, L._hash_rotation(G)))
+        origins = dr.gather(mi.Point3f, table.center, per)
+        sky = mi.Ray3f(origins, dirs)
         dr.eval(sky)
         out = [sky]
-        for kind, emitter in light.lights:
+        for kind, emitter in L.point_lights(scene):
             d, _, _ = L.light_at(kind, emitter, table.center)
             out.append(mi.Ray3f(table.center, d))
     return out, L.SHADOW_MAX_HITS
@@ -351,22 +354,24 @@ def run_size(n, args, rows):
     clear_grads(params, keys)
 
     # Lighting precompute: its shadow rays, hits and raw traversal.
-    srays, s_cap = shadow_rays(scene, cam)
-    n_sh = sum(dr.width(r.o) for r in srays)
     raw_sh = None
     if precompute:
+        srays, s_cap = shadow_rays(scene, cam)
+        n_sh = sum(dr.width(r.o) for r in srays)
         sh_hits = sum(count_hits(scene, r, s_cap) for r in srays)
         raw_sh = timed(lambda: dr.eval([raw_traverse(scene, r, s_cap) for r in srays]),
                        args.runs)[1]
         pre = (cold[0] - fwd[1], cold[1] - fwd[1], cold[2], cold[3])
         add("camera light precompute", pre, n_sh, sh_hits, raw_sh, FWD_TARGET)
         rows[-1]["cold"] = cold
+        del srays
     else:
+        from mi_invrgbl.plugins.lighting import SHADOW_MAX_HITS as s_cap, point_lights
+        n_sh = n * (args.samples + len(point_lights(scene)))
         rows.append(dict(n=n, info="camera light precompute: skipped above --precompute-max "
                                    "%d (%d shadow rays, cap %d); the cache was filled with "
                                    "visibility 1 (per-frame cost does not depend on its values)"
                                    % (args.precompute_max, n_sh, s_cap)))
-    del srays
 
     # ---- LiDAR
     lrays = lidar_rays(scene, lid)
