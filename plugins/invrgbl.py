@@ -191,7 +191,6 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
         rays = mi.Ray3f(dr.detach(ray))
         nodes = hitlib.gaussian_nodes(scene)
         hit_list = hitlib.trace(scene, rays, self.max_hits, self.min_transmittance, nodes)
-        K = hit_list.max_hits
         n_rays = dr.width(rays.o)
 
         L = dr.zeros(mi.Color3f, n_rays)

@@ -167,7 +167,6 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
         nodes = hitlib.gaussian_nodes(scene)
         if hit_list is None:
             hit_list = hitlib.trace(scene, rays, self.max_hits, self.min_transmittance, nodes)
-        K = hit_list.max_hits
         power = self._laser_power(scene)
         g = hitlib.eval_gaussian_hits(nodes, rays, hit_list)
         w, t_after = hitlib.blend_weights(g)

@@ -103,8 +103,13 @@ def write_times(path: str, times) -> None:
 
 
 def write_velodyne(path: str, points: np.ndarray) -> None:
-    """KITTI .bin: float32 (x, y, z, intensity) per point, sensor frame."""
-    np.ascontiguousarray(points, dtype=np.float32).tofile(path)
+    """KITTI .bin: float32 (x, y, z, intensity) per point, sensor frame.
+
+    Delegates to the reader's own writer so that one format definition serves both.
+    """
+    from ..io.velodyne import write_velodyne as write_bin
+    points = np.asarray(points, np.float32).reshape(-1, 4)
+    write_bin(path, points[:, :3], points[:, 3])
 
 
 def read_velodyne(path: str) -> np.ndarray:
