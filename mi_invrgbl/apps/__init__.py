@@ -1,0 +1,1 @@
+"""Applications of fitted scenes: relighting, night, object insertion, LiDAR simulation."""

@@ -1,0 +1,1 @@
+"""Inverse rendering: observations, the two-stage optimisation, losses and model selection."""
