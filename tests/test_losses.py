@@ -1,0 +1,235 @@
+"""Losses: closed forms, gradients against float64 central differences, edge cases."""
+
+import math
+
+import numpy as np
+import pytest
+import drjit as dr
+import mitsuba as mi
+
+from mi_invrgbl.fit import losses as L
+
+RNG = np.random.default_rng(7)
+
+
+# ------------------------------------------------------- numpy references
+def np_masked_mean(err, mask=None):
+    err = np.asarray(err, np.float64)
+    if err.ndim == 1:
+        err = err[:, None]
+    if mask is None:
+        return err.mean()
+    m = np.asarray(mask, np.float64)
+    s = m.sum() * err.shape[1]
+    return 0.0 if s == 0 else float((err * m[:, None]).sum() / s)
+
+
+def np_bilateral(bl, brgb, h, w, sigma, mask=None):
+    bl = bl.reshape(h, w)
+    brgb = brgb.reshape(h, w, 3)
+    m = np.ones((h, w)) if mask is None else np.asarray(mask, np.float64).reshape(h, w)
+    tot, cnt = 0.0, 0.0
+    for (a, b), (c, d) in (((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
+                           ((slice(None, -1), slice(None)), (slice(1, None), slice(None)))):
+        wgt = np.exp(-((brgb[a, b] - brgb[c, d]) ** 2).sum(-1) / sigma ** 2) * m[a, b] * m[c, d]
+        tot += (np.abs(bl[a, b] - bl[c, d]) * wgt).sum()
+        cnt += (m[a, b] * m[c, d]).sum()
+    return tot / cnt if cnt > 0 else 0.0
+
+
+def np_superpixel(brgb, labels, n_labels, mask=None):
+    brgb = brgb.reshape(-1, 3)
+    m = np.ones(len(labels)) if mask is None else np.asarray(mask, np.float64)
+    m = m * (labels < n_labels)
+    tot = 0.0
+    for k in range(n_labels):
+        sel = (labels == k) & (m > 0)
+        if not sel.any():
+            continue
+        wk = m[sel]
+        mean = (brgb[sel] * wk[:, None]).sum(0) / wk.sum()
+        tot += (((brgb[sel] - mean) ** 2).sum(1) * wk).sum()
+    return tot / (m.sum() * 3) if m.sum() > 0 else 0.0
+
+
+def fd_grad(f, x, eps=1e-6):
+    x = np.asarray(x, np.float64)
+    g = np.zeros_like(x)
+    for i in range(x.size):
+        xp, xm = x.copy(), x.copy()
+        xp.flat[i] += eps
+        xm.flat[i] -= eps
+        g.flat[i] = (f(xp) - f(xm)) / (2 * eps)
+    return g
+
+
+def dr_grad(loss_fn, x, make):
+    """Value and gradient of loss_fn(make(x)) with respect to the flat array x."""
+    v = mi.Float(np.asarray(x, np.float32).ravel())
+    dr.enable_grad(v)
+    out = loss_fn(make(v))
+    assert dr.width(out) == 1
+    dr.backward(out)
+    return float(out[0]), np.array(dr.grad(v), np.float64)
+
+
+def as_color(v):
+    idx = dr.arange(mi.UInt32, dr.width(v) // 3) * 3
+    return mi.Color3f(dr.gather(mi.Float, v, idx), dr.gather(mi.Float, v, idx + 1),
+                      dr.gather(mi.Float, v, idx + 2))
+
+
+def check(value, grad, ref_f, x, rtol=2e-3, atol=1e-6):
+    assert math.isfinite(value)
+    assert value == pytest.approx(ref_f(np.asarray(x, np.float64)), rel=1e-4, abs=1e-6)
+    np.testing.assert_allclose(grad, fd_grad(ref_f, x), rtol=rtol, atol=atol)
+
+
+# ------------------------------------------------------------- closed forms
+def test_closed_forms():
+    assert L.rgb_loss(mi.Float([1, 2]), mi.Float([0, 0]))[0] == pytest.approx(2.5)
+    c = mi.Color3f([1, 0], [0, 0], [0, 2])
+    assert L.rgb_loss(c, mi.Color3f(0))[0] == pytest.approx(5 / 6)
+    assert L.rgb_loss(c, mi.Color3f(0), mask=mi.Bool([True, False]))[0] == pytest.approx(1 / 3)
+    m = mi.Bool([True, False, True])
+    assert L.lidar_loss(mi.Float([1, 5, 3]), mi.Float([0, 0, 0]), m)[0] == pytest.approx(5.0)
+    assert L.range_loss(mi.Float([1, 5, -3]), mi.Float(0), m)[0] == pytest.approx(2.0)
+    assert L.prior_loss(mi.Vector3f(1, 0, 0), mi.Vector3f(0, 0, 1))[0] == pytest.approx(2 / 3)
+    # BCE: p = 0.5 everywhere -> log 2
+    assert L.ray_drop_loss(mi.Float([0.5, 0.5]), mi.Float([1, 0]))[0] == pytest.approx(math.log(2))
+    # Tensor inputs and interleaved channels with a per-pixel mask
+    t = mi.TensorXf(mi.Float([1, 1, 1, 2, 2, 2]), shape=(1, 2, 3))
+    assert L.rgb_loss(t, mi.TensorXf(dr.zeros(mi.Float, 6), shape=(1, 2, 3)),
+                      mask=mi.Bool([False, True]))[0] == pytest.approx(4.0)
+    # bilateral: 1x3 map, lidar 0,1,1, equal rgb -> pairs |0-1| + |1-1| over 2 pairs
+    v = L.bilateral_smoothness(mi.Float([0, 1, 1]), mi.Color3f(0.5), 1, 3)
+    assert v[0] == pytest.approx(0.5)
+    # rgb edge between pixel 0 and 1 of size 0.1 in one channel -> weight e^-1 with sigma 0.1
+    rgb = mi.Color3f([0.0, 0.1, 0.1], [0, 0, 0], [0, 0, 0])
+    v = L.bilateral_smoothness(mi.Float([0, 1, 1]), rgb, 1, 3, sigma=0.1)
+    assert v[0] == pytest.approx(math.exp(-1) / 2, rel=1e-5)
+    # superpixel variance: segment {0, 1} grey values 0 and 1 -> var 0.25, segment {2} -> 0
+    v = L.superpixel_variance(mi.Float([0, 1, 7]), mi.UInt32([0, 0, 1]), 2)
+    assert v[0] == pytest.approx(0.25 * 2 / 3)
+    v = L.superpixel_variance(mi.Color3f([0, 1, 7], [0, 1, 7], [0, 1, 7]), mi.UInt32([0, 0, 1]), 2)
+    assert v[0] == pytest.approx(0.25 * 2 / 3)
+
+
+# ---------------------------------------------------------------- gradients
+def test_grad_rgb_and_prior():
+    n = 12
+    x = RNG.uniform(0, 1, 3 * n)
+    tgt = RNG.uniform(0, 1, 3 * n)
+    mask = RNG.uniform(size=n) > 0.3
+    tc = as_color(mi.Float(tgt.astype(np.float32)))
+    for fn in (L.rgb_loss, L.prior_loss):
+        val, g = dr_grad(lambda c: fn(c, tc, mi.Bool(mask)), x, as_color)
+        check(val, g, lambda y: np_masked_mean((y - tgt).reshape(-1, 3) ** 2, mask), x)
+    # interleaved float, no mask
+    val, g = dr_grad(lambda v: L.rgb_loss(v, mi.Float(tgt.astype(np.float32))), x, lambda v: v)
+    check(val, g, lambda y: np.mean((y - tgt) ** 2), x)
+
+
+def test_grad_lidar_range_raydrop():
+    n = 20
+    x = RNG.uniform(0.05, 0.95, n)
+    tgt = RNG.uniform(0, 1, n)
+    mask = RNG.uniform(size=n) > 0.4
+    tf = mi.Float(tgt.astype(np.float32))
+    val, g = dr_grad(lambda v: L.lidar_loss(v, tf, mi.Bool(mask)), x, lambda v: v)
+    check(val, g, lambda y: np_masked_mean((y - tgt) ** 2, mask), x)
+    tgt2 = np.where(np.abs(x - tgt) < 0.01, tgt + 0.05, tgt)
+    val, g = dr_grad(lambda v: L.range_loss(v, mi.Float(tgt2.astype(np.float32)), mi.Bool(mask)),
+                     x, lambda v: v)
+    check(val, g, lambda y: np_masked_mean(np.abs(y - tgt2), mask), x)
+    hit = (RNG.uniform(size=n) > 0.5).astype(np.float64)
+    val, g = dr_grad(lambda v: L.ray_drop_loss(v, mi.Float(hit.astype(np.float32))), x, lambda v: v)
+    check(val, g, lambda y: -np.mean(hit * np.log(y) + (1 - hit) * np.log(1 - y)), x)
+
+
+@pytest.mark.parametrize("use_mask", [False, True])
+def test_grad_bilateral(use_mask):
+    h, w = 4, 5
+    bl = RNG.uniform(0, 1, h * w)
+    rgb = RNG.uniform(0, 0.3, 3 * h * w)
+    mask = (RNG.uniform(size=h * w) > 0.2) if use_mask else None
+    rgb_c = as_color(mi.Float(rgb.astype(np.float32)))
+    mk = None if mask is None else mi.Bool(mask)
+    val, g = dr_grad(lambda v: L.bilateral_smoothness(v, rgb_c, h, w, 0.1, mk), bl, lambda v: v)
+    check(val, g, lambda y: np_bilateral(y, rgb, h, w, 0.1, mask), bl)
+    # no gradient into the RGB albedo (weights are detached)
+    blf = mi.Float(bl.astype(np.float32))
+    vr = mi.Float(rgb.astype(np.float32))
+    dr.enable_grad(vr)
+    assert not dr.grad_enabled(L.bilateral_smoothness(blf, as_color(vr), h, w))
+
+
+@pytest.mark.parametrize("use_mask", [False, True])
+def test_grad_superpixel(use_mask):
+    n = 30
+    x = RNG.uniform(0, 1, 3 * n)
+    labels = RNG.integers(0, 5, n).astype(np.uint32)
+    labels[3] = 99  # ignored (>= n_labels)
+    mask = (RNG.uniform(size=n) > 0.3) if use_mask else None
+    mk = None if mask is None else mi.Bool(mask)
+    val, g = dr_grad(lambda c: L.superpixel_variance(c, mi.UInt32(labels), 5, mk), x, as_color)
+    check(val, g, lambda y: np_superpixel(y, labels, 5, mask), x)
+
+
+# ---------------------------------------------------------------- edge cases
+def test_edge_cases_finite():
+    zero = mi.Float(np.zeros(6, np.float32))
+    empty = mi.Bool(np.zeros(6, bool))
+    for fn in (L.lidar_loss, L.range_loss, L.prior_loss):
+        v = mi.Float(np.ones(6, np.float32))
+        dr.enable_grad(v)
+        out = fn(v, zero, empty)
+        dr.backward(out)
+        assert out[0] == 0.0 and np.all(np.isfinite(np.array(dr.grad(v))))
+    # BCE at exactly 0 and 1 stays finite, gradient too
+    a = mi.Float([0.0, 1.0, 0.0, 1.0])
+    dr.enable_grad(a)
+    out = L.ray_drop_loss(a, mi.Float([0, 1, 1, 0]))
+    dr.backward(out)
+    assert math.isfinite(out[0]) and out[0] > 0
+    assert np.all(np.isfinite(np.array(dr.grad(a))))
+    # constant maps: bilateral and superpixel terms are 0 with finite gradients
+    h, w = 3, 4
+    bl = mi.Float(np.full(h * w, 0.3, np.float32))
+    dr.enable_grad(bl)
+    out = L.bilateral_smoothness(bl, mi.Color3f(0.2), h, w)
+    dr.backward(out)
+    assert out[0] == 0 and np.all(np.isfinite(np.array(dr.grad(bl))))
+    rgb = mi.Color3f(np.full((3, h * w), 0.4, np.float32))
+    dr.enable_grad(rgb)
+    out = L.superpixel_variance(rgb, mi.UInt32(np.zeros(h * w, np.uint32)), 1)  # one segment
+    dr.backward(out)
+    assert out[0] == pytest.approx(0, abs=1e-12)
+    assert np.all(np.isfinite(np.array(dr.grad(rgb))))
+    # empty masks -> 0, not NaN
+    none = mi.Bool(np.zeros(h * w, bool))
+    assert L.bilateral_smoothness(bl, mi.Color3f(0.2), h, w, mask=none)[0] == 0
+    assert L.superpixel_variance(rgb, mi.UInt32(np.zeros(h * w, np.uint32)), 1, none)[0] == 0
+    assert L.rgb_loss(mi.Color3f(1.0, 1.0, 1.0), mi.Color3f(0.0), mi.Bool(False))[0] == 0
+    # single-pixel and single-row maps
+    assert L.bilateral_smoothness(mi.Float([1.0]), mi.Color3f(0.0), 1, 1)[0] == 0
+    assert L.superpixel_variance(mi.Float([0.5]), mi.UInt32([0]), 1)[0] == 0
+    with pytest.raises(ValueError):
+        L.bilateral_smoothness(mi.Float([1.0, 2.0]), mi.Color3f(0.0), 3, 3)
+
+
+# ------------------------------------------------------------------ weights
+def test_loss_weights():
+    w = L.LossWeights()
+    assert (w.lidar, w.rgb, w.nor, w.mat, w.rgb2lidar, w.lidar2rgb) == (1, 1, 0.1, 0.1, 0.05, 0.05)
+    w2 = L.LossWeights.parse("rgb2lidar=0, lidar2rgb=0.1")
+    assert w2.rgb2lidar == 0 and w2.lidar2rgb == 0.1 and w2.rgb == 1
+    assert "rgb2lidar" not in w2.active() and "lidar2rgb" in w2.active()
+    assert L.LossWeights.parse("normal=0.2,material=0").nor == 0.2
+    assert L.LossWeights.parse(str(w2)) == w2
+    for bad in ("foo=1", "rgb", "rgb=x", "rgb=-1", "rgb=nan"):
+        with pytest.raises(ValueError):
+            L.LossWeights.parse(bad)
+    total = w2.combine({"rgb": mi.Float(2.0), "rgb2lidar": None, "lidar2rgb": mi.Float(10.0)})
+    assert total[0] == pytest.approx(3.0)
+    assert L.LossWeights.parse("").combine({})[0] == 0
