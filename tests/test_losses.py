@@ -233,3 +233,60 @@ def test_loss_weights():
     total = w2.combine({"rgb": mi.Float(2.0), "rgb2lidar": None, "lidar2rgb": mi.Float(10.0)})
     assert total[0] == pytest.approx(3.0)
     assert L.LossWeights.parse("").combine({})[0] == 0
+
+
+# -------------------------------------------------------------- superpixels
+def two_region_map(h, w, a, b, slope, offset, noise=0.0, seed=0):
+    yy, xx = np.mgrid[:h, :w]
+    region = (xx + slope * yy) > offset
+    img = np.where(region, b, a).astype(np.float32)
+    img += np.random.default_rng(seed).normal(0, noise, img.shape).astype(np.float32)
+    return img, region
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("channels", [1, 3])
+def test_slic_never_straddles(seed, channels):
+    from mi_invrgbl.fit.superpixels import slic_labels
+    img, region = two_region_map(40 + 7 * seed, 60 + 5 * seed, 0.12, 0.45, 0.3 + 0.4 * seed,
+                                 25 + 3 * seed, noise=0.003 * (seed % 2), seed=seed)
+    if channels == 3:
+        img = np.stack([img, 0.5 * img, 1 - img], -1)
+    for size in (6, 12):
+        labels, n = slic_labels(img, region_size=size)
+        assert labels.shape == region.shape and labels.dtype == np.int32
+        assert labels.min() == 0 and labels.max() == n - 1
+        assert len(np.unique(labels)) == n
+        for k in range(n):
+            frac = region[labels == k].mean()
+            assert frac in (0.0, 1.0)
+
+
+def test_slic_nan_tiny_and_loss():
+    from mi_invrgbl.fit.superpixels import slic_labels, labels_to_drjit
+    img, region = two_region_map(30, 40, 0.2, 0.7, 0.5, 20)
+    img[3:6, 4:9] = np.nan
+    labels, n = slic_labels(img, region_size=8)
+    assert np.all(labels[3:6, 4:9] == -1)
+    good = labels >= 0
+    assert np.all(labels[~np.isnan(img)] >= 0) and n > 1
+    for k in range(n):
+        assert region[labels == k].mean() in (0.0, 1.0)
+    # uint8 input and explicit valid mask
+    lab8, n8 = slic_labels((0.5 * region * 255).astype(np.uint8), region_size=8,
+                           valid=good)
+    assert n8 >= 2 and np.all(lab8[~good] == -1)
+    # tiny and degenerate maps
+    assert slic_labels(np.zeros((1, 5), np.float32))[1] == 1
+    assert slic_labels(np.full((2, 2), np.nan, np.float32))[1] == 0
+    lab, n = slic_labels(np.full((3, 3), 0.4, np.float32), region_size=16)
+    assert n == 1 and np.all(lab == 0)
+    with pytest.raises(ValueError):
+        slic_labels(np.zeros((4, 4, 2)))
+    # the loss on the labels: an RGB albedo that is constant per LiDAR region -> 0
+    rgb = np.where(region[..., None], [0.6, 0.5, 0.4], [0.1, 0.1, 0.1]).astype(np.float32)
+    flat = mi.Color3f(rgb.reshape(-1, 3).T.copy())
+    assert L.superpixel_variance(flat, labels_to_drjit(labels), n)[0] == pytest.approx(0, abs=1e-10)
+    rgb[0, 0] += 0.3
+    flat = mi.Color3f(rgb.reshape(-1, 3).T.copy())
+    assert L.superpixel_variance(flat, labels_to_drjit(labels), n)[0] > 0
