@@ -1,0 +1,73 @@
+"""``mi-invrgbl fit DIR/scene.xml``: two-stage RGB + LiDAR inverse rendering.
+
+See :mod:`mi_invrgbl.fit.runner` for the order of work and
+``docs/scene_format.md`` for the input and output files.
+"""
+
+from __future__ import annotations
+
+import time
+
+from ..errors import UserError
+
+
+def add_parser(sub):
+    p = sub.add_parser("fit", help="fit geometry, materials, light and LiDAR response to an imported scene")
+    p.add_argument("scene", help="scene.xml written by 'mi-invrgbl import'")
+    p.add_argument("-o", "--output", default="", help="output folder (default: <scene folder>/fit)")
+    p.add_argument("--stage1", type=int, default=150, help="stage-1 (geometry) iterations (default 150)")
+    p.add_argument("--stage2", type=int, default=200, help="stage-2 (materials) iterations (default 200)")
+    p.add_argument("--width", type=int, default=320, help="image width the fit works at (default 320)")
+    p.add_argument("--lidar-columns", type=int, default=512,
+                   help="LiDAR azimuth columns used per scan (default 512)")
+    p.add_argument("--batch", type=int, default=4096, help="stage-1 rays per batch (camera and LiDAR each)")
+    p.add_argument("--samples", type=int, default=16, help="sky samples M per Gaussian (default 16)")
+    p.add_argument("--weights", default="",
+                   help="loss weights, e.g. 'rgb2lidar=0,lidar2rgb=0' (paper defaults: lidar=rgb=1, "
+                        "nor=mat=0.1, rgb2lidar=lidar2rgb=0.05; 0 switches a term off)")
+    p.add_argument("--sigma", type=float, default=0.1, help="bilateral sigma of L_rgb->lidar")
+    p.add_argument("--sun", choices=("auto", "on", "off"), default="auto",
+                   help="use a sun: decided from the data (auto) or forced")
+    p.add_argument("--sh-order", choices=("auto", "0", "1", "2", "3"), default="auto",
+                   help="SH order of the sky: decided from the visible sky (auto) or forced")
+    p.add_argument("--lidar-model", choices=("auto", "pbr", "lambertian"), default="auto",
+                   help="LiDAR reflectance: keep the specular lobe only if it lowers held-out error (auto)")
+    p.add_argument("--no-response", action="store_true",
+                   help="keep the paper's cos/d^2 LiDAR response instead of estimating it")
+    p.add_argument("--max-gaussians", type=int, default=800000, help="densification cap")
+    p.add_argument("--checkpoint-every", type=int, default=50)
+    p.add_argument("--eval-every", type=int, default=50)
+    p.add_argument("--resume", action="store_true", help="continue from DIR/fit/checkpoints/latest.npz")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(run=run)
+
+
+def config_from_args(args):
+    from ..fit.losses import LossWeights
+    from ..fit.runner import FitConfig
+    try:
+        weights = LossWeights.parse(args.weights)
+    except ValueError as exc:
+        raise UserError("--weights: %s" % exc) from None
+    for name in ("stage1", "stage2", "width", "lidar_columns", "batch", "samples"):
+        if getattr(args, name) < (0 if name.startswith("stage") else 1):
+            raise UserError("--%s must be positive" % name.replace("_", "-"))
+    return FitConfig(output=args.output, stage1_iterations=args.stage1, stage2_iterations=args.stage2,
+                     fit_width=args.width, lidar_columns=args.lidar_columns, batch_rays=args.batch,
+                     samples=args.samples, weights=weights, bilateral_sigma=args.sigma, sun=args.sun,
+                     sh_order=args.sh_order, lidar_model=args.lidar_model,
+                     fit_response=not args.no_response, max_gaussians=args.max_gaussians,
+                     checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
+                     resume=args.resume, seed=args.seed)
+
+
+def run(args):
+    from ..fit.runner import run_fit
+    t0 = time.time()
+    metrics = run_fit(args.scene, config_from_args(args))
+    print("[fit] %s in %.0f s; held-out PSNR %s dB, LiDAR intensity RMSE %s; peak memory %.0f MB"
+          % ("interrupted" if metrics["interrupted"] else "done", time.time() - t0,
+             "%.2f" % metrics["heldout_psnr"] if metrics["heldout_psnr"] is not None else "n/a",
+             "%.4f" % metrics["heldout_intensity_rmse"] if metrics["heldout_intensity_rmse"] is not None
+             else "n/a", metrics["peak_rss_mb"]))
+    return 130 if metrics["interrupted"] else 0

@@ -1,0 +1,248 @@
+"""The optimised scene graph: Gaussian nodes as Dr.Jit variables.
+
+Each ``gaussians`` node of the scene (the static ``background`` and one node
+per moving object) is held here in its own frame (world for the background,
+the object's frame for objects) in unconstrained form:
+
+==============  =====  ===============================================
+key             width  meaning
+==============  =====  ===============================================
+center          3      centre (node frame)
+log_scale       3      natural log of the three standard deviations
+quat            4      rotation quaternion x y z w (normalised on use)
+opacity_logit   1      logit of the opacity
+colour          3      view-independent colour (stage 1 only)
+normal          3      shading normal (node frame; normalised on use)
+albedo          3      RGB albedo in [0, 1]
+roughness       1      GGX roughness in [0.02, 1]
+lidar_albedo    1      LiDAR albedo in [0, 1]
+==============  =====  ===============================================
+
+:meth:`GaussianModel.push` writes a node's world-frame arrays into the scene's
+``gaussians`` shape (``mi.traverse`` keys ``<id>.data``, ``<id>.opacities``,
+...), differentiably, so the integrators' gathers see the optimiser's
+variables. Objects are moved to their pose at a frame by a rigid transform of
+centres, rotations and normals.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import drjit as dr
+import mitsuba as mi
+
+from ..plugins.gaussian_ply import GaussianCloud
+from ..plugins.gaussians import cloud_from_shape, apply_transform
+
+GEOMETRY_KEYS = ("center", "log_scale", "quat", "opacity_logit")
+MATERIAL_KEYS = ("normal", "albedo", "roughness", "lidar_albedo")
+WIDTHS = {"center": 3, "log_scale": 3, "quat": 4, "opacity_logit": 1, "colour": 3,
+          "normal": 3, "albedo": 3, "roughness": 1, "lidar_albedo": 1, "sun_visibility": 1}
+ROUGHNESS_RANGE = (0.02, 1.0)
+#: Opacity logit bounds: keeps sigmoid away from exactly 0/1 (log(1 - a) finite).
+LOGIT_RANGE = (-9.0, 9.0)
+
+
+def _logit(p):
+    p = np.clip(p, 1e-4, 1 - 1e-4)
+    return np.log(p / (1 - p))
+
+
+def quat_mul(a: mi.Quaternion4f, b: mi.Quaternion4f) -> mi.Quaternion4f:
+    return a * b
+
+
+def matrix_quaternion_xyzw(rot: np.ndarray) -> np.ndarray:
+    from ..plugins.gaussian_ply import matrix_to_quaternion
+    q = matrix_to_quaternion(rot[None].astype(np.float64))[0]  # w x y z
+    return np.array([q[1], q[2], q[3], q[0]])
+
+
+@dataclass
+class Node:
+    """One ``gaussians`` shape being optimised."""
+    name: str
+    count: int
+    dynamic: bool
+    values: dict = field(default_factory=dict)   # key -> mi.Float (flat, width * count)
+    sun_visibility: np.ndarray = None            # traced, written to the PLY
+
+    def vec(self, key):
+        v = self.values[key]
+        w = WIDTHS[key]
+        idx = dr.arange(mi.UInt32, self.count) * w
+        if w == 1:
+            return v
+        parts = [dr.gather(mi.Float, v, idx + j) for j in range(w)]
+        return mi.Vector3f(*parts) if w == 3 else mi.Vector4f(*parts)
+
+    def numpy(self, key):
+        w = WIDTHS[key]
+        a = np.array(self.values[key], np.float32)
+        return a.reshape(self.count, w) if w > 1 else a.reshape(self.count)
+
+
+def _interleave(vectors, count):
+    """Flat (count * len(vectors),) array from a list of per-element Floats."""
+    width = len(vectors)
+    out = dr.zeros(mi.Float, count * width)
+    idx = dr.arange(mi.UInt32, count) * width
+    for j, v in enumerate(vectors):
+        dr.scatter(out, v, idx + j)
+    return out
+
+
+class GaussianModel:
+    """All optimised nodes plus the scene they are rendered in."""
+
+    def __init__(self, scene, object_names=()):
+        self.scene = scene
+        self.params = mi.traverse(scene)
+        self.nodes: dict[str, Node] = {}
+        self.object_names = set(object_names)
+        for shape in scene.shapes():
+            if shape.is_ellipsoids():
+                self._add_node(shape)
+        if not self.nodes:
+            raise ValueError("the scene holds no 'gaussians' shape to fit")
+
+    # ------------------------------------------------------------ set-up
+    def _add_node(self, shape):
+        name = shape.id()
+        cloud = cloud_from_shape(shape)
+        dynamic = name in self.object_names
+        self.nodes[name] = Node(name, len(cloud), dynamic)
+        self.set_cloud(name, cloud, local=not dynamic)
+
+    def set_cloud(self, name, cloud: GaussianCloud, local=True, pose=None):
+        """(Re)initialise a node from a cloud. ``pose`` (4x4) maps world to
+        the node frame when the cloud is in world coordinates."""
+        if pose is not None:
+            cloud = apply_transform(cloud, np.linalg.inv(pose))
+        n = len(cloud)
+        node = self.nodes[name]
+        node.count = n
+        q = cloud.quaternions / np.linalg.norm(cloud.quaternions, axis=1, keepdims=True)
+        values = {
+            "center": cloud.centers,
+            "log_scale": np.log(np.maximum(cloud.scales, 1e-6)),
+            "quat": np.concatenate([q[:, 1:4], q[:, :1]], axis=1),
+            "opacity_logit": _logit(cloud.opacities),
+            "colour": cloud.albedo,
+            "normal": cloud.normals,
+            "albedo": cloud.albedo,
+            "roughness": cloud.roughness,
+            "lidar_albedo": cloud.lidar_albedo,
+        }
+        node.values = {k: mi.Float(np.asarray(v, np.float32).ravel()) for k, v in values.items()}
+        node.sun_visibility = np.asarray(cloud.sun_visibility, np.float32)
+
+    def keys(self, names):
+        return ["%s.%s" % (n, k) for n in self.nodes for k in names]
+
+    def get(self, key):
+        name, k = key.split(".", 1)
+        return self.nodes[name].values[k]
+
+    def set(self, key, value):
+        name, k = key.split(".", 1)
+        self.nodes[name].values[k] = value
+
+    @property
+    def total(self):
+        return sum(n.count for n in self.nodes.values())
+
+    # ------------------------------------------------------- world arrays
+    def world_geometry(self, node: Node, pose=None):
+        """Differentiable (data, opacities) of a node at ``pose`` (node -> world)."""
+        c = node.vec("center")
+        q = node.vec("quat")
+        q = mi.Quaternion4f(q.x, q.y, q.z, q.w)
+        q = q * dr.rsqrt(dr.maximum(dr.squared_norm(q), 1e-20))
+        if pose is not None and node.dynamic:
+            rot = pose[:3, :3]
+            c = mi.Matrix3f(rot.astype(np.float32)) @ c + mi.Vector3f(*pose[:3, 3].astype(np.float32))
+            qr = matrix_quaternion_xyzw(rot)
+            q = mi.Quaternion4f(*[float(x) for x in qr]) * q
+        s = dr.exp(node.vec("log_scale"))
+        # Same thickening as the shape plugin: flatter Gaussians lose rays.
+        smax = dr.maximum(dr.maximum(s.x, s.y), s.z)
+        s = dr.maximum(s, dr.maximum(1e-2 * smax, 1e-6))
+        data = _interleave([c.x, c.y, c.z, s.x, s.y, s.z, q.x, q.y, q.z, q.w], node.count)
+        logit = dr.clip(node.values["opacity_logit"], *LOGIT_RANGE)
+        return data, dr.rcp(1.0 + dr.exp(-logit))
+
+    def world_normal(self, node: Node, pose=None):
+        n = node.vec("normal")
+        if pose is not None and node.dynamic:
+            n = mi.Matrix3f(pose[:3, :3].astype(np.float32)) @ n
+        n = n * dr.rsqrt(dr.maximum(dr.squared_norm(n), 1e-20))
+        return _interleave([n.x, n.y, n.z], node.count)
+
+    def push(self, poses=None, stage=1, update=True):
+        """Write every node's world arrays into the scene (differentiably).
+
+        ``poses`` maps object names to their node -> world 4x4 at this frame.
+        Stage 1 shows the view-independent colour as albedo.
+        """
+        poses = poses or {}
+        for name, node in self.nodes.items():
+            data, opac = self.world_geometry(node, poses.get(name))
+            p = self.params
+            p[name + ".data"] = data
+            p[name + ".opacities"] = opac
+            p[name + ".albedo"] = node.values["colour" if stage == 1 else "albedo"]
+            p[name + ".normal"] = self.world_normal(node, poses.get(name))
+            p[name + ".roughness"] = node.values["roughness"]
+            p[name + ".lidar_albedo"] = node.values["lidar_albedo"]
+        if update:
+            self.params.update()
+
+    # ---------------------------------------------------------- clamping
+    def clamp(self):
+        """Project bounded variables back into range after an optimiser step."""
+        for node in self.nodes.values():
+            v = node.values
+            for key in ("colour", "albedo", "lidar_albedo"):
+                if key in v:
+                    v[key] = dr.clip(v[key], 0.0, 1.0)
+            if "roughness" in v:
+                v["roughness"] = dr.clip(v["roughness"], *ROUGHNESS_RANGE)
+            if "opacity_logit" in v:
+                v["opacity_logit"] = dr.clip(v["opacity_logit"], *LOGIT_RANGE)
+            if "log_scale" in v:
+                v["log_scale"] = dr.clip(v["log_scale"], np.log(1e-4), np.log(5.0))
+
+    # ------------------------------------------------------ numpy export
+    def cloud(self, name, stage=2) -> GaussianCloud:
+        """The node as a :class:`GaussianCloud` in its own frame."""
+        node = self.nodes[name]
+        q = node.numpy("quat")
+        q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)
+        n = node.numpy("normal")
+        n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        logit = np.clip(node.numpy("opacity_logit"), *LOGIT_RANGE)
+        return GaussianCloud(
+            centers=node.numpy("center"), scales=np.exp(node.numpy("log_scale")),
+            quaternions=np.concatenate([q[:, 3:4], q[:, :3]], axis=1),
+            opacities=1 / (1 + np.exp(-logit)), normals=n,
+            albedo=np.clip(node.numpy("albedo" if stage == 2 else "colour"), 0, 1),
+            roughness=node.numpy("roughness"), lidar_albedo=node.numpy("lidar_albedo"),
+            sun_visibility=node.sun_visibility if node.sun_visibility is not None
+            and node.sun_visibility.shape[0] == node.count else np.ones(node.count, np.float32),
+            source="node '%s'" % name)
+
+    def state_dict(self):
+        return {"%s.%s" % (name, k): np.array(v, np.float32)
+                for name, node in self.nodes.items() for k, v in node.values.items()}
+
+    def load_state_dict(self, state):
+        for key, value in state.items():
+            name, k = key.split(".", 1)
+            if name not in self.nodes:
+                continue
+            node = self.nodes[name]
+            node.values[k] = mi.Float(np.asarray(value, np.float32).ravel())
+            node.count = node.values[k].shape[0] // WIDTHS[k] if k in WIDTHS else node.count

@@ -1,0 +1,162 @@
+"""Observations of an imported scene, at the resolution the fit works at.
+
+Camera images are read as 8-bit sRGB, linearised and resized (area filter) to
+``fit_width``; the rays of a frame are the sensor's rays through the pixel
+centres of that grid, so one traced hit list per frame serves every
+iteration while geometry is frozen. LiDAR scans are the range images written
+by ``import`` (one pixel per beam of the frame's ``lidar`` sensor); columns may
+be thinned by ``lidar_stride`` for speed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import cv2
+import drjit as dr
+import mitsuba as mi
+
+from ..errors import UserError
+from ..io.images import read_exr
+from ..scene_graph import Frames
+
+
+def srgb_to_linear(x):
+    x = np.asarray(x, np.float32)
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def linear_to_srgb(x):
+    x = np.clip(np.asarray(x, np.float32), 0, 1)
+    return np.where(x <= 0.0031308, x * 12.92, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+@dataclass
+class CameraObservation:
+    sensor: object
+    image: np.ndarray          # (H, W, 3) linear RGB
+    width: int
+    height: int
+    rays: mi.Ray3f = None      # one per pixel, row-major
+    priors: dict = field(default_factory=dict)  # kind -> (H, W, C) arrays
+
+
+@dataclass
+class LidarObservation:
+    sensor: object
+    intensity: np.ndarray      # (B, W') observed, [0, 1]
+    range: np.ndarray          # (B, W')
+    hit: np.ndarray            # (B, W') bool
+    rays: mi.Ray3f = None      # one per kept pixel, row-major
+    row: mi.UInt32 = None
+    near: mi.Float = None      # distance from the sensor to each ray origin
+
+
+@dataclass
+class FrameObservation:
+    index: int
+    held_out: bool
+    poses: dict                # object name -> 4x4 object -> world
+    camera: CameraObservation | None
+    lidar: LidarObservation | None
+
+
+def _find_sensor(scene, name):
+    for s in scene.sensors():
+        if s.id() == name:
+            return s
+    return None
+
+
+def camera_rays(sensor, width, height):
+    """Rays through the pixel centres of a ``width`` x ``height`` grid over the film."""
+    idx = dr.arange(mi.UInt32, width * height)
+    row = idx // width
+    col = idx - row * width
+    pos = mi.Point2f((mi.Float(col) + 0.5) / width, (mi.Float(row) + 0.5) / height)
+    rays, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5), True)
+    return mi.Ray3f(rays)
+
+
+def lidar_rays(sensor, stride):
+    """Beam rays of every ``stride``-th column, the row of each, and the origin offset."""
+    from ..plugins.lidar_return import LidarReturnIntegrator
+    rays, row, (h, w), near = LidarReturnIntegrator.beam_rays(sensor)
+    cols = np.arange(0, w, stride)
+    keep = (np.arange(h)[:, None] * w + cols[None, :]).ravel().astype(np.uint32)
+    k = mi.UInt32(keep)
+    out = mi.Ray3f(dr.gather(mi.Point3f, rays.o, k), dr.gather(mi.Vector3f, rays.d, k))
+    out.maxt = dr.gather(mi.Float, rays.maxt, k)
+    return out, dr.gather(mi.UInt32, row, k), dr.gather(mi.Float, near, k), cols, (h, w)
+
+
+def _read_image(path, width, height):
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise UserError("%s: cannot read the camera image" % path)
+    img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
+    if img.shape[1] != width or img.shape[0] != height:
+        img = cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
+    return srgb_to_linear(img)
+
+
+def _read_scan(path):
+    try:
+        data, names = read_exr(str(path))
+    except Exception as exc:  # noqa: BLE001  (any reader failure is a bad file)
+        raise UserError("%s: cannot read the LiDAR scan (%s)" % (path, exc)) from None
+    ch = {n: data[..., i] for i, n in enumerate(names)}
+    for need in ("intensity", "range", "hit"):
+        if need not in ch:
+            raise UserError("%s: LiDAR scan lacks channel '%s' (has %s)" % (path, need, names))
+    intensity = np.nan_to_num(ch["intensity"])
+    rng = np.nan_to_num(ch["range"])
+    hit = (ch["hit"] > 0.5) & np.isfinite(ch["range"]) & (rng > 0)
+    return intensity, rng, hit
+
+
+def fit_size(frames: Frames, fit_width: int):
+    w, h = frames.camera.width, frames.camera.height
+    if fit_width and fit_width < w:
+        return int(fit_width), max(1, int(round(h * fit_width / w)))
+    return w, h
+
+
+def load_observations(scene, frames: Frames, fit_width=320, lidar_columns=512,
+                      use_camera=True, use_lidar=True, log=print):
+    """Every frame's observations (training and held out)."""
+    width, height = fit_size(frames, fit_width)
+    out = []
+    for pos, rec in enumerate(frames):
+        cam = lid = None
+        if use_camera and rec.image is not None:
+            sensor = _find_sensor(scene, rec.camera)
+            if sensor is None:
+                raise UserError("%s: the scene has no sensor '%s' for frame %d"
+                                % (frames.path, rec.camera, rec.index))
+            if not rec.image.is_file():
+                raise UserError("%s: image of frame %d not found" % (rec.image, rec.index))
+            cam = CameraObservation(sensor, _read_image(rec.image, width, height), width, height)
+            cam.rays = camera_rays(sensor, width, height)
+            for kind, path in rec.priors.items():
+                if path is not None and path.is_file():
+                    data, _ = read_exr(str(path))
+                    cam.priors[kind] = cv2.resize(data, (width, height),
+                                                  interpolation=cv2.INTER_AREA).reshape(height, width, -1)
+        if use_lidar and rec.lidar_scan is not None and rec.lidar_scan.is_file():
+            sensor = _find_sensor(scene, rec.lidar)
+            if sensor is not None:
+                intensity, rng, hit = _read_scan(rec.lidar_scan)
+                stride = max(1, int(np.ceil(intensity.shape[1] / max(lidar_columns, 1))))
+                rays, row, near, cols, size = lidar_rays(sensor, stride)
+                if tuple(intensity.shape) != tuple(size):
+                    raise UserError("%s: scan is %dx%d but sensor '%s' has another size"
+                                    % (rec.lidar_scan, intensity.shape[0], intensity.shape[1],
+                                       rec.lidar))
+                lid = LidarObservation(sensor, intensity[:, cols], rng[:, cols], hit[:, cols],
+                                       rays, row, near)
+        out.append(FrameObservation(rec.index, rec.held_out, dict(rec.objects), cam, lid))
+    if not any(o.camera is not None or o.lidar is not None for o in out if not o.held_out):
+        raise UserError("%s: no training frame has an image or a LiDAR scan" % frames.path)
+    return out

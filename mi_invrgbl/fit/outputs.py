@@ -1,0 +1,152 @@
+"""What ``fit`` leaves in ``DIR/fit/``: scenes, PLYs, maps, metrics, log, plot.
+
+``scene.xml`` is the imported scene with the fitted sky, sun and sample
+count, and the fitted Gaussians (same file names, now next to it);
+``scene_lidar.xml`` is the same scene with the ``lidar_return`` integrator
+carrying the fitted sensor response and LiDAR model, so that
+``mi.render(scene, sensor=lidar_sensor)`` simulates the recorded sensor.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import drjit as dr
+import mitsuba as mi
+
+from ..io.images import write_exr
+from ..plugins.gaussian_ply import write_ply
+from .progress import peak_rss_mb, plot_error_vs_time
+
+
+def _fmt(values):
+    return " ".join("%.7g" % float(v) for v in np.asarray(values, np.float64).ravel())
+
+
+def _set_child(elem, tag, name, value):
+    for child in elem:
+        if child.get("name") == name:
+            elem.remove(child)
+    ET.SubElement(elem, tag, {"name": name, "value": value})
+
+
+def fitted_xml(ctx, lidar=False):
+    """The fitted scene's XML text (camera or LiDAR integrator)."""
+    tree = ET.parse(ctx.scene_path)
+    root = tree.getroot()
+    sky = np.array(dr.detach(ctx.params[ctx.sky_key]), np.float64).reshape(-1, 3)
+    order = getattr(ctx, "sh_order", ctx.sky_emitter.order)
+    sky = sky[: (order + 1) ** 2]
+    for em in root.iter("emitter"):
+        if em.get("type") == "shsun":
+            _set_child(em, "string", "sh", _fmt(sky))
+            _set_child(em, "integer", "order", str(order))
+            d = np.array(dr.detach(ctx.params[ctx.sun_dir_key]), np.float64).ravel()
+            for child in list(em):
+                if child.get("name") == "sun_direction":
+                    em.remove(child)
+            ET.SubElement(em, "vector", {"name": "sun_direction", "x": "%.7g" % d[0],
+                                         "y": "%.7g" % d[1], "z": "%.7g" % d[2]})
+            e = np.array(dr.detach(ctx.params[ctx.sun_key]), np.float64).ravel() if ctx.use_sun \
+                else np.zeros(3)
+            _set_child(em, "rgb", "sun_irradiance", _fmt(e))
+    for integ in list(root.findall("integrator")):
+        root.remove(integ)
+    if lidar:
+        r = ctx.response
+        lobe = ctx.selection.get("lidar_lobe", {}).get("model", "pbr")
+        integ = ET.Element("integrator", {"type": "lidar_return"})
+        ET.SubElement(integ, "string", {"name": "model", "value": lobe})
+        ET.SubElement(integ, "float", {"name": "range_exponent",
+                                       "value": "%.6g" % float(r.range_exponent[0])})
+        ET.SubElement(integ, "float", {"name": "angle_exponent",
+                                       "value": "%.6g" % float(r.angle_exponent[0])})
+        ET.SubElement(integ, "string", {"name": "beam_gains", "value": _fmt(np.array(r.beam_gains))})
+    else:
+        integ = ET.Element("integrator", {"type": "invrgbl"})
+        ET.SubElement(integ, "integer", {"name": "samples", "value": str(ctx.config.samples)})
+    root.insert(0, integ)
+    ET.indent(tree, space="  ")
+    return ET.tostring(root, encoding="unicode")
+
+
+def _write_text(path, text):
+    tmp = path + ".part"
+    with open(tmp, "w") as f:
+        f.write(text)
+    os.replace(tmp, path)
+
+
+def write_maps(ctx, stage2, out_dir):
+    """Per training frame: albedo, roughness, normal, LiDAR albedo (camera view)
+    and LiDAR intensity (range image) EXRs."""
+    written = 0
+    with dr.suspend_grad():
+        vals = stage2.values()
+        for f in ctx.train_frames:
+            out = stage2.render_frame(f, vals)
+            name = "%04d" % f.index
+            if "camera" in out:
+                c = out["camera"]
+                H, W = f.camera.height, f.camera.width
+                arr = lambda v, k: np.stack([np.array(v[i]) for i in range(k)], 1).reshape(H, W, k)  # noqa: E731
+                write_exr(os.path.join(out_dir, name + "_albedo.exr"), arr(c["albedo"], 3), ["R", "G", "B"])
+                write_exr(os.path.join(out_dir, name + "_normal.exr"), arr(c["normal"], 3), ["X", "Y", "Z"])
+                write_exr(os.path.join(out_dir, name + "_roughness.exr"),
+                          np.array(c["roughness"]).reshape(H, W, 1), ["Y"])
+                write_exr(os.path.join(out_dir, name + "_lidar_albedo.exr"),
+                          np.array(c["lidar_albedo"]).reshape(H, W, 1), ["Y"])
+                write_exr(os.path.join(out_dir, name + "_rgb.exr"), arr(c["rgb"], 3), ["R", "G", "B"])
+                written += 1
+            if "lidar" in out:
+                B, Wl = f.lidar.intensity.shape
+                write_exr(os.path.join(out_dir, name + "_lidar_intensity.exr"),
+                          np.stack([np.array(out["lidar"]["intensity"]).reshape(B, Wl),
+                                    f.lidar.intensity], -1), ["fitted", "observed"])
+    return written
+
+
+def write_outputs(ctx, stage2, interrupted=False):
+    fit_dir = ctx.fit_dir
+    os.makedirs(fit_dir, exist_ok=True)
+    stage = 2 if stage2 is not None else 1
+    plys = {}
+    for name in ctx.model.nodes:
+        path = os.path.join(fit_dir, "%s.ply" % name)
+        write_ply(path, ctx.model.cloud(name, stage=stage))
+        plys[name] = path
+    _write_text(os.path.join(fit_dir, "scene.xml"), fitted_xml(ctx))
+    _write_text(os.path.join(fit_dir, "scene_lidar.xml"), fitted_xml(ctx, lidar=True))
+    maps = 0
+    if stage2 is not None:
+        maps = write_maps(ctx, stage2, os.path.join(fit_dir, "maps"))
+    rows = ctx.speed_log.rows
+    final = rows[-1] if rows else {}
+    metrics = {
+        "scene": ctx.scene_path,
+        "interrupted": interrupted,
+        "gaussians": {n: node.count for n, node in ctx.model.nodes.items()},
+        "frames": {"train": [f.index for f in ctx.train_frames],
+                   "held_out": [f.index for f in ctx.held_out_frames]},
+        "heldout_psnr": float(final["heldout_psnr"]) if final.get("heldout_psnr") not in (None, "") else None,
+        "heldout_intensity_rmse": float(final["heldout_intensity_rmse"])
+        if final.get("heldout_intensity_rmse") not in (None, "") else None,
+        "selection": ctx.selection,
+        "response": {"range_exponent": float(ctx.response.range_exponent[0]),
+                     "angle_exponent": float(ctx.response.angle_exponent[0]),
+                     "beam_gains": np.array(ctx.response.beam_gains).tolist()},
+        "times_s": ctx.times,
+        "peak_rss_mb": peak_rss_mb(),
+        "rollbacks": ctx.lr_state.get("rollbacks", 0),
+        "config": ctx.config.to_json(),
+        "maps_written": maps,
+    }
+    _write_text(os.path.join(fit_dir, "metrics.json"), json.dumps(metrics, indent=1))
+    plot_error_vs_time(rows, os.path.join(fit_dir, "error_vs_time.png"))
+    ctx.log("[fit] results in %s: scene.xml, scene_lidar.xml, %s, maps/ (%d frames), metrics.json, "
+            "log.csv, error_vs_time.png" % (fit_dir, ", ".join(os.path.basename(p) for p in plys.values()),
+                                            maps))
+    return metrics

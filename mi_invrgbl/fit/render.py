@@ -1,0 +1,182 @@
+"""Differentiable renders the fit needs, built on the plugins' traversal.
+
+Stage 1 (geometry moves): :func:`camera_unlit` and :func:`lidar_beams` trace
+the rays every iteration and blend differentiably (the plugins' own
+``trace`` / ``eval_gaussian_hits`` / ``blend_weights``).
+
+Stage 2 (geometry frozen): :func:`freeze` traces a frame once and keeps, per
+hit, the Gaussian, its blend weight and its distance; :func:`camera_shaded`
+and :func:`lidar_shaded` are then pure gathers and sums over those cached
+arrays plus the cached per-Gaussian visibility — no ray is traced.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import drjit as dr
+import mitsuba as mi
+
+from ..plugins import brdf, hits as hitlib
+from ..plugins.lighting import environment_radiance
+
+
+# ---------------------------------------------------------------- stage 1
+def camera_unlit(scene, rays, max_hits=32, min_transmittance=1e-2):
+    """View-independent colour (the ``albedo`` field blended), alpha, depth."""
+    nodes = hitlib.gaussian_nodes(scene)
+    hl = hitlib.trace(scene, rays, max_hits, min_transmittance, nodes)
+    g = hitlib.eval_gaussian_hits(nodes, rays, hl)
+    w, t_after = hitlib.blend_weights(g)
+    colour = hitlib.gather_attribute(nodes, "albedo", g.node_ids, g.prims, g.active)
+    rgb = hitlib.composite(g, w, mi.Color3f(colour))
+    rgb += mi.Color3f(environment_radiance(scene, rays.d)) * t_after
+    alpha = hitlib.composite(g, w, mi.Float(1.0))
+    depth = hitlib.composite(g, w, g.t)
+    return rgb, alpha, depth
+
+
+def lidar_beams(integrator, scene, rays, row, near):
+    """``lidar_return`` channels (intensity, range, hit, lidar_albedo, alpha)."""
+    return integrator.render_beams(scene, rays, row, near=near)
+
+
+# ---------------------------------------------------------------- stage 2
+@dataclass
+class FrozenHits:
+    """One frame's traversal with frozen geometry (flat per-hit arrays)."""
+    n_rays: int
+    max_hits: int
+    ray: mi.UInt32
+    slot: mi.UInt32
+    node_ids: mi.UInt32
+    prims: mi.UInt32
+    weight: mi.Float
+    t: mi.Float
+    t_after: mi.Float         # per ray: transmittance left behind the Gaussians
+    surface: mi.Bool          # per ray: an opaque (mesh) surface ends the ray
+
+    def ray_index(self):
+        return self.ray
+
+    @property
+    def hit_count(self):
+        return dr.width(self.ray)
+
+    def nbytes(self):
+        return 24 * self.hit_count + 5 * self.n_rays
+
+
+def freeze(scene, rays, max_hits=32, min_transmittance=1e-2, min_weight=1e-4, nodes=None):
+    """Trace ``rays`` once and keep the hits that matter (weight >= ``min_weight``)."""
+    with dr.suspend_grad():
+        nodes = hitlib.gaussian_nodes(scene) if nodes is None else nodes
+        hl = hitlib.trace(scene, rays, max_hits, min_transmittance, nodes)
+        g = hitlib.eval_gaussian_hits(nodes, rays, hl)
+        w, t_after = hitlib.blend_weights(g)
+        keep = dr.compress(g.active & (w >= min_weight))
+        if dr.width(keep) == 0:
+            keep = dr.zeros(mi.UInt32, 1)
+        take = lambda a, T: dr.gather(T, a, keep)  # noqa: E731
+        fh = FrozenHits(hl.n_rays, hl.max_hits, take(g.ray, mi.UInt32), take(g.slot, mi.UInt32),
+                        take(g.node_ids, mi.UInt32), take(g.prims, mi.UInt32),
+                        take(dr.select(g.active, w, 0.0), mi.Float), take(g.t, mi.Float),
+                        mi.Float(t_after), hl.surface_valid & hl.surface_interaction(rays).is_valid())
+        dr.eval(fh.ray, fh.slot, fh.node_ids, fh.prims, fh.weight, fh.t, fh.t_after, fh.surface)
+        return fh
+
+
+class VirtualNode:
+    """A Gaussian node as the plugins' gathers see it, built from fit variables.
+
+    Same fields as :class:`~mi_invrgbl.plugins.hits.GaussianNode`; ``id`` is the
+    scene shape's registry id so traced hit lists address it.
+    """
+
+    def __init__(self, shape_id, data, opacities, attributes, count):
+        self.id = shape_id
+        self.data = data
+        self.opacities = opacities
+        self.attributes = attributes
+        self.count = count
+        self.shape = None
+
+
+def frozen_gaussian_hits(nodes, rays, fh: FrozenHits):
+    """A :class:`~mi_invrgbl.plugins.hits.GaussianHits` over cached hits; the
+    normal (and what depends on it) stays differentiable."""
+    active = fh.node_ids != 0
+    d = dr.gather(mi.Vector3f, rays.d, fh.ray)
+    n = hitlib.gather_attribute(nodes, "normal", fh.node_ids, fh.prims, active)
+    n = n * dr.rsqrt(dr.maximum(dr.squared_norm(n), 1e-20))
+    cos_d = dr.dot(n, d)
+    n = dr.select(cos_d > 0, -n, n)
+    return hitlib.GaussianHits(mi.Float(0.0), fh.t, n, dr.abs(cos_d), active, fh.node_ids,
+                               fh.prims, fh.ray, fh.slot, fh.n_rays, fh.max_hits)
+
+
+def camera_shaded(integrator, scene, lighting, nodes, rays, fh: FrozenHits):
+    """Physically based colour + AOVs of a frozen frame (``invrgbl``'s shading)."""
+    g = frozen_gaussian_hits(nodes, rays, fh)
+    colour, albedo, n, tau, rho = integrator.shade_gaussian_hits(lighting, nodes, rays, fh, g)
+    w = fh.weight
+    rgb = hitlib.composite(g, w, colour)
+    sky = dr.select(fh.surface, 0.0, fh.t_after)
+    rgb += mi.Color3f(environment_radiance(scene, rays.d)) * sky
+    return {
+        "rgb": rgb,
+        "albedo": hitlib.composite(g, w, albedo),
+        "normal": hitlib.composite(g, w, n),
+        "roughness": hitlib.composite(g, w, tau),
+        "lidar_albedo": hitlib.composite(g, w, rho),
+        "alpha": hitlib.composite(g, w, mi.Float(1.0)),
+    }
+
+
+@dataclass
+class Response:
+    """LiDAR sensor response ``I = g_beam (rho + pi f_s) cos^a / (pi d^b)``."""
+    range_exponent: mi.Float
+    angle_exponent: mi.Float
+    beam_gains: mi.Float
+
+    def __call__(self, factor, cos_theta, distance, row):
+        gain = dr.gather(mi.Float, self.beam_gains,
+                         dr.minimum(row, dr.width(self.beam_gains) - 1))
+        d = dr.maximum(distance, 1e-3)
+        c = dr.clip(cos_theta, 1e-4, 1.0)
+        return gain * factor * dr.exp(self.angle_exponent * dr.log(c)
+                                      - self.range_exponent * dr.log(d)) / dr.pi
+
+
+def lidar_shaded(nodes, rays, row, near, fh: FrozenHits, response: Response,
+                 model="pbr", f0=brdf.F0_DEFAULT):
+    """Per-beam intensity, LiDAR albedo and alpha of a frozen scan."""
+    g = frozen_gaussian_hits(nodes, rays, fh)
+    rho = hitlib.gather_attribute(nodes, "lidar_albedo", g.node_ids, g.prims, g.active)
+    tau = hitlib.gather_attribute(nodes, "roughness", g.node_ids, g.prims, g.active)
+    factor = brdf.lidar_return_factor(rho, tau, g.cos_theta, model, f0)
+    dist = fh.t + dr.gather(mi.Float, near, fh.ray)
+    intensity_k = response(factor, g.cos_theta, dist, dr.gather(mi.UInt32, row, fh.ray))
+    w = fh.weight
+    return {
+        "intensity": hitlib.composite(g, w, intensity_k),
+        "lidar_albedo": hitlib.composite(g, w, rho),
+        "alpha": hitlib.composite(g, w, mi.Float(1.0)),
+        "range": hitlib.composite(g, w, dist),
+    }
+
+
+def dominant_hit(fh: FrozenHits):
+    """Per ray, the index (global over nodes: node id, prim) of the hit with the
+    largest weight, as numpy arrays (ray, node_id, prim, weight, t)."""
+    ray = np.array(fh.ray)
+    w = np.array(fh.weight)
+    order = np.lexsort((-w, ray))
+    ray_s = ray[order]
+    first = np.ones(len(ray_s), bool)
+    first[1:] = ray_s[1:] != ray_s[:-1]
+    sel = order[first]
+    return (ray[sel], np.array(fh.node_ids)[sel], np.array(fh.prims)[sel], w[sel],
+            np.array(fh.t)[sel])

@@ -1,0 +1,206 @@
+"""Stage 1: geometry, opacity and a view-independent colour.
+
+Each iteration takes one training frame (objects placed at their pose there),
+a random batch of its camera pixels and of its LiDAR beams, traces them
+through the current Gaussians and fits
+
+* colour: ``L_rgb`` between the blended colour (plus the sky behind) and the image,
+* LiDAR geometry: ``L_range`` (L1 on beams with a return) and ``L_drop``
+  (binary cross-entropy between accumulated opacity and the observed
+  return/no-return mask).
+
+Every ``densify_every`` iterations Gaussians that are nearly transparent are
+pruned and those with large positional gradients are split (large ones) or
+cloned (small ones), as in 3D Gaussian Splatting, up to ``max_gaussians``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import drjit as dr
+import mitsuba as mi
+
+from . import losses
+from .model import GEOMETRY_KEYS
+from .render import camera_unlit, lidar_beams
+from .steps import make_optimizer, safe_step
+
+#: Learning rates per variable (positions in metres per step).
+STAGE1_LR = {"center": 2e-3, "log_scale": 5e-3, "quat": 2e-3, "opacity_logit": 2e-2,
+             "colour": 1e-2, "sky": 1e-2}
+
+
+def _gather_rays(rays, idx):
+    out = mi.Ray3f(dr.gather(mi.Point3f, rays.o, idx), dr.gather(mi.Vector3f, rays.d, idx))
+    out.maxt = dr.gather(mi.Float, rays.maxt, idx)
+    return out
+
+
+class Stage1:
+    def __init__(self, ctx):
+        self.ctx = ctx
+        cfg = ctx.config
+        self.model = ctx.model
+        self.rng = ctx.rng
+        self.grad_accum = {}
+        self.build_optimizer()
+        self.batch_camera = cfg.batch_rays
+        self.batch_lidar = cfg.batch_rays
+
+    def build_optimizer(self):
+        values, lrs = {}, {}
+        for key in self.model.keys(GEOMETRY_KEYS + ("colour",)):
+            values[key] = self.model.get(key)
+            lrs[key] = STAGE1_LR[key.split(".", 1)[1]] * self.ctx.config.lr_scale
+        if self.ctx.sky_key is not None:
+            values["sky.sh"] = self.ctx.params[self.ctx.sky_key]
+            lrs["sky.sh"] = STAGE1_LR["sky"] * self.ctx.config.lr_scale
+        self.opt = make_optimizer(values, lrs)
+
+    def pull(self):
+        for key in self.opt.keys():
+            if key == "sky.sh":
+                self.ctx.params[self.ctx.sky_key] = self.opt[key]
+            else:
+                self.model.set(key, self.opt[key])
+
+    def loss_terms(self, frame):
+        cfg = self.ctx.config
+        terms = {}
+        if frame.camera is not None and cfg.weights.rgb > 0:
+            cam = frame.camera
+            n = cam.width * cam.height
+            idx = mi.UInt32(self.rng.integers(0, n, min(self.batch_camera, n)).astype(np.uint32))
+            rays = _gather_rays(cam.rays, idx)
+            rgb, alpha, _ = camera_unlit(self.ctx.scene, rays, cfg.max_hits, cfg.min_transmittance)
+            target = dr.gather(mi.Color3f, self.ctx.image_array(frame), idx)
+            terms["rgb"] = losses.rgb_loss(rgb, target)
+        if frame.lidar is not None and (cfg.stage1_range > 0 or cfg.stage1_drop > 0):
+            lid = frame.lidar
+            n = dr.width(lid.rays.o)
+            sel = self.rng.integers(0, n, min(self.batch_lidar, n)).astype(np.uint32)
+            idx = mi.UInt32(sel)
+            rays = _gather_rays(lid.rays, idx)
+            ch = lidar_beams(self.ctx.lidar_integrator, self.ctx.scene, rays,
+                             dr.gather(mi.UInt32, lid.row, idx), dr.gather(mi.Float, lid.near, idx))
+            hit = mi.Bool(lid.hit.ravel()[sel])
+            obs_range = mi.Float(lid.range.ravel()[sel].astype(np.float32))
+            both = hit & (ch[2] > 0)
+            terms["range"] = losses.range_loss(ch[1], obs_range, both) * cfg.stage1_range
+            terms["raydrop"] = losses.ray_drop_loss(ch[4], hit) * cfg.stage1_drop
+        return terms
+
+    def iteration(self, it):
+        ctx = self.ctx
+        frame = ctx.train_frames[self.rng.integers(0, len(ctx.train_frames))]
+        self.pull()
+        self.model.push(frame.poses, stage=1)
+        terms = self.loss_terms(frame)
+        total = mi.Float(0.0)
+        for v in terms.values():
+            total = total + v
+        ok = safe_step(self.opt, total, ctx.log, ctx.lr_state, "stage-1 iteration %d" % it)
+        if ok:
+            self._accumulate_gradients()
+            self._clamp()
+        return float(total[0]), {k: float(v[0]) for k, v in terms.items()}, ok
+
+    def _clamp(self):
+        for key in list(self.opt.keys()):
+            k = key.split(".", 1)[1] if "." in key else key
+            v = self.opt[key]
+            if k == "colour":
+                self.opt[key] = dr.clip(v, 0.0, 1.0)
+            elif k == "opacity_logit":
+                self.opt[key] = dr.clip(v, -9.0, 9.0)
+            elif k == "log_scale":
+                self.opt[key] = dr.clip(v, float(np.log(1e-4)), float(np.log(5.0)))
+
+    def _accumulate_gradients(self):
+        # Positional gradient magnitude per Gaussian, for densification.
+        for name, node in self.model.nodes.items():
+            key = name + ".center"
+            if key not in self.opt:
+                continue
+            g = np.array(dr.grad(self.opt[key]), np.float32).reshape(-1, 3)
+            if g.shape[0] != node.count:
+                continue
+            acc = self.grad_accum.setdefault(name, [np.zeros(node.count, np.float32),
+                                                    np.zeros(node.count, np.float32)])
+            norm = np.linalg.norm(g, axis=1)
+            acc[0] += norm
+            acc[1] += norm > 0
+
+    # ------------------------------------------------------------ densify
+    def densify(self):
+        """Prune transparent Gaussians, split/clone those with large gradients."""
+        cfg = self.ctx.config
+        self.pull()
+        report = {}
+        total_now = self.model.total
+        for name, node in self.model.nodes.items():
+            cloud = self.model.cloud(name, stage=1)
+            colour = np.clip(node.numpy("colour"), 0, 1)
+            cloud.albedo = colour
+            keep = cloud.opacities > cfg.prune_opacity
+            acc = self.grad_accum.get(name)
+            grow = np.zeros(len(cloud), bool)
+            if acc is not None and acc[0].shape[0] == len(cloud):
+                mean_grad = acc[0] / np.maximum(acc[1], 1)
+                budget = max(0, cfg.max_gaussians - total_now)
+                cand = np.nonzero(keep & (mean_grad > cfg.densify_grad))[0]
+                if budget and cand.size:
+                    cand = cand[np.argsort(-mean_grad[cand])][: min(budget, cand.size)]
+                    grow[cand] = True
+            big = cloud.scales.max(axis=1) > cfg.split_scale
+            split = grow & big
+            clone = grow & ~big
+            parts = [_subset(cloud, keep & ~split)]
+            if clone.any():
+                parts.append(_subset(cloud, clone))
+            if split.any():
+                for sign in (-1.0, 1.0):
+                    s = _subset(cloud, split)
+                    rot = _rotation(s.quaternions)
+                    offset = np.einsum("nij,nj->ni", rot, s.scales * self.rng.normal(size=s.scales.shape))
+                    s.centers = (s.centers + sign * 0.5 * offset).astype(np.float32)
+                    s.scales = (s.scales / 1.6).astype(np.float32)
+                    parts.append(s)
+            new = _concat(parts, cloud.source)
+            # Keep the old per-Gaussian rows of the stage-2 fields: they are
+            # not optimised yet, so the merged cloud carries them along.
+            self.model.set_cloud(name, new, local=True)
+            node = self.model.nodes[name]
+            node.values["colour"] = mi.Float(new.albedo.astype(np.float32).ravel())
+            report[name] = (int((~keep).sum()), int(clone.sum()), int(split.sum()), node.count)
+            total_now = total_now - len(cloud) + node.count
+        self.grad_accum = {}
+        sky = self.opt["sky.sh"] if "sky.sh" in self.opt else None
+        self.build_optimizer()
+        if sky is not None:
+            self.opt["sky.sh"] = sky
+        return report
+
+
+def _rotation(q_wxyz):
+    from ..plugins.gaussian_ply import quaternion_to_matrix
+    return quaternion_to_matrix(q_wxyz.astype(np.float64))
+
+
+def _subset(cloud, mask):
+    from ..plugins.gaussian_ply import GaussianCloud
+    pick = lambda a: None if a is None else a[mask].copy()  # noqa: E731
+    return GaussianCloud(centers=pick(cloud.centers), scales=pick(cloud.scales),
+                         quaternions=pick(cloud.quaternions), opacities=pick(cloud.opacities),
+                         normals=pick(cloud.normals), albedo=pick(cloud.albedo),
+                         roughness=pick(cloud.roughness), lidar_albedo=pick(cloud.lidar_albedo),
+                         sun_visibility=pick(cloud.sun_visibility), source=cloud.source)
+
+
+def _concat(parts, source):
+    from ..plugins.gaussian_ply import GaussianCloud
+    cat = lambda name: np.concatenate([getattr(p, name) for p in parts], axis=0)  # noqa: E731
+    return GaussianCloud(centers=cat("centers"), scales=cat("scales"), quaternions=cat("quaternions"),
+                         opacities=cat("opacities"), normals=cat("normals"), albedo=cat("albedo"),
+                         roughness=cat("roughness"), lidar_albedo=cat("lidar_albedo"),
+                         sun_visibility=cat("sun_visibility"), source=source)

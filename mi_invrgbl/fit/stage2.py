@@ -1,0 +1,256 @@
+"""Stage 2: materials, lighting and the LiDAR sensor response on frozen geometry.
+
+Before the first iteration every frame is traced once (:func:`.render.freeze`)
+and the per-Gaussian sky/sun visibility is computed once per object
+placement (one cache for a static scene, one per frame when objects move).
+An iteration is then gathers and sums over cached arrays:
+
+* ``L_rgb``: shaded colour (``invrgbl``'s per-Gaussian PBR shading) vs the image;
+* ``L_lidar``: the paper's LiDAR intensity with the sensor response vs the
+  observed intensity, on beams with a return;
+* ``L_rgb->lidar``: bilateral smoothness of the rendered LiDAR-albedo map,
+  weighted by the rendered RGB albedo;
+* ``L_lidar->rgb``: variance of the rendered RGB albedo inside SLIC
+  superpixels of the LiDAR-albedo map;
+* ``L_nor`` / ``L_mat``: prior maps, where a frame has them.
+
+Optimised: per-Gaussian normal, albedo, roughness, LiDAR albedo; the SH sky,
+the sun's irradiance; range/angle exponents and per-beam gains.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import drjit as dr
+import mitsuba as mi
+
+from ..plugins.lighting import GaussianLighting, LightingCache
+from . import losses
+from .model import MATERIAL_KEYS
+from .render import (FrozenHits, Response, VirtualNode, camera_shaded, freeze,
+                     lidar_shaded)
+from .steps import make_optimizer, safe_step
+from .superpixels import slic_labels
+
+STAGE2_LR = {"normal": 5e-3, "albedo": 1e-2, "roughness": 1e-2, "lidar_albedo": 1e-2,
+             "sky": 1e-2, "sun": 2e-2, "range_exponent": 1e-2, "angle_exponent": 1e-2,
+             "beam_gains": 1e-2}
+
+
+class FrozenScene:
+    """Cached traversals and visibility of every frame (geometry frozen)."""
+
+    def __init__(self, ctx, frames):
+        self.ctx = ctx
+        cfg = ctx.config
+        model = ctx.model
+        self.camera, self.lidar, self.caches, self.geometry = {}, {}, {}, {}
+        dynamic = any(n.dynamic for n in model.nodes.values())
+        shared = LightingCache()
+        with dr.suspend_grad():
+            for frame in frames:
+                model.push(frame.poses, stage=2)
+                geo = {}
+                for name, node in model.nodes.items():
+                    data, opac = model.world_geometry(node, frame.poses.get(name))
+                    data, opac = dr.detach(data), dr.detach(opac)
+                    dr.eval(data, opac)
+                    geo[name] = (data, opac)
+                # Static nodes share their arrays across frames, so a static
+                # scene's lighting cache key (array identities) stays valid.
+                for name, node in model.nodes.items():
+                    if not node.dynamic and frames and frame is not frames[0]:
+                        geo[name] = self.geometry[frames[0].index][name]
+                self.geometry[frame.index] = geo
+                self.caches[frame.index] = LightingCache() if dynamic else shared
+                if frame.camera is not None:
+                    self.camera[frame.index] = freeze(ctx.scene, frame.camera.rays, cfg.max_hits,
+                                                      cfg.min_transmittance)
+                if frame.lidar is not None:
+                    self.lidar[frame.index] = freeze(ctx.scene, frame.lidar.rays, cfg.max_hits,
+                                                     cfg.min_transmittance)
+
+    def nbytes(self):
+        return sum(f.nbytes() for f in list(self.camera.values()) + list(self.lidar.values()))
+
+    def nodes(self, frame, values):
+        """Virtual nodes of ``frame``: frozen geometry + the material variables."""
+        out = []
+        model = self.ctx.model
+        for name, node in model.nodes.items():
+            data, opac = self.geometry[frame.index][name]
+            pose = frame.poses.get(name)
+            normal = values[name + ".normal"]
+            if pose is not None and node.dynamic:
+                n = mi.Vector3f(*[dr.gather(mi.Float, normal, dr.arange(mi.UInt32, node.count) * 3 + j)
+                                  for j in range(3)])
+                n = mi.Matrix3f(pose[:3, :3].astype(np.float32)) @ n
+                normal = dr.zeros(mi.Float, node.count * 3)
+                for j in range(3):
+                    dr.scatter(normal, n[j], dr.arange(mi.UInt32, node.count) * 3 + j)
+            attributes = {"normal": normal, "albedo": values[name + ".albedo"],
+                          "roughness": values[name + ".roughness"],
+                          "lidar_albedo": values[name + ".lidar_albedo"]}
+            out.append(VirtualNode(model.shape_ids[name], data, opac, attributes, node.count))
+        return out
+
+
+class Stage2:
+    def __init__(self, ctx, frozen: FrozenScene, model_kind="pbr"):
+        self.ctx = ctx
+        self.frozen = frozen
+        self.model_kind = model_kind
+        self.rng = ctx.rng
+        self.labels = {}
+        self.build_optimizer()
+
+    def build_optimizer(self, keys=None):
+        ctx, model = self.ctx, self.ctx.model
+        values, lrs = {}, {}
+        for key in model.keys(MATERIAL_KEYS):
+            values[key] = model.get(key)
+            lrs[key] = STAGE2_LR[key.split(".", 1)[1]]
+        if ctx.sky_key is not None and ctx.config.weights.rgb > 0:
+            values["sky.sh"] = ctx.params[ctx.sky_key]
+            lrs["sky.sh"] = STAGE2_LR["sky"]
+            if ctx.sun_key is not None and ctx.use_sun:
+                values["sky.sun_irradiance"] = ctx.params[ctx.sun_key]
+                lrs["sky.sun_irradiance"] = STAGE2_LR["sun"]
+        if ctx.config.weights.lidar > 0:
+            r = ctx.response
+            values["response.range_exponent"] = r.range_exponent
+            values["response.angle_exponent"] = r.angle_exponent
+            values["response.beam_gains"] = r.beam_gains
+            for k in ("range_exponent", "angle_exponent", "beam_gains"):
+                lrs["response." + k] = STAGE2_LR[k] if ctx.config.fit_response else 0.0
+        if keys is not None:
+            values = {k: v for k, v in values.items() if k in keys}
+        self.opt = make_optimizer(values, {k: lrs[k] for k in values})
+        for k in list(self.opt.keys()):
+            if lrs[k] == 0.0:
+                del self.opt[k]
+
+    def values(self):
+        """Current variables (grad-enabled where optimised)."""
+        ctx, model = self.ctx, self.ctx.model
+        vals = {key: model.get(key) for key in model.keys(MATERIAL_KEYS)}
+        for key in self.opt.keys():
+            vals[key] = self.opt[key]
+        if "sky.sh" in vals:
+            # Coefficients above the selected SH order stay zero (and get no gradient).
+            mask = getattr(ctx, "sh_mask", None)
+            ctx.params[ctx.sky_key] = vals["sky.sh"] * mask if mask is not None else vals["sky.sh"]
+        if "sky.sun_irradiance" in vals:
+            ctx.params[ctx.sun_key] = vals["sky.sun_irradiance"]
+        if "sky.sh" in vals or "sky.sun_irradiance" in vals:
+            ctx.params.update()
+        return vals
+
+    def response(self, vals):
+        r = self.ctx.response
+        return Response(vals.get("response.range_exponent", r.range_exponent),
+                        vals.get("response.angle_exponent", r.angle_exponent),
+                        vals.get("response.beam_gains", r.beam_gains))
+
+    def commit(self):
+        """Write the optimised variables back into the model / context."""
+        ctx = self.ctx
+        for key in self.opt.keys():
+            value = dr.detach(self.opt[key])
+            if key.startswith("response."):
+                setattr(ctx.response, key.split(".", 1)[1], mi.Float(value))
+            elif key == "sky.sh":
+                mask = getattr(ctx, "sh_mask", None)
+                ctx.params[ctx.sky_key] = value * mask if mask is not None else value
+            elif key == "sky.sun_irradiance":
+                ctx.params[ctx.sun_key] = value
+            else:
+                ctx.model.set(key, mi.Float(value))
+        ctx.params.update()
+
+    # ---------------------------------------------------------- render
+    def render_frame(self, frame, vals, camera=True, lidar=True):
+        ctx = self.ctx
+        nodes = self.frozen.nodes(frame, vals)
+        out = {}
+        if camera and frame.index in self.frozen.camera and ctx.config.weights.rgb > 0:
+            lighting = GaussianLighting(ctx.scene, nodes, ctx.config.samples,
+                                        self.frozen.caches[frame.index], trace_sun=True)
+            out["camera"] = camera_shaded(ctx.camera_integrator, ctx.scene, lighting, nodes,
+                                          frame.camera.rays, self.frozen.camera[frame.index])
+        if lidar and frame.index in self.frozen.lidar:
+            out["lidar"] = lidar_shaded(nodes, frame.lidar.rays, frame.lidar.row, frame.lidar.near,
+                                        self.frozen.lidar[frame.index], self.response(vals),
+                                        self.model_kind)
+        return out
+
+    def superpixels(self, frame, out):
+        """SLIC labels of the frame's rendered LiDAR-albedo map (recomputed on demand)."""
+        cam = frame.camera
+        rho = np.array(dr.detach(out["camera"]["lidar_albedo"]), np.float32).reshape(cam.height, cam.width)
+        labels, n = slic_labels(rho, region_size=self.ctx.config.slic_size)
+        self.labels[frame.index] = (mi.UInt32(labels.ravel().astype(np.uint32)), int(n))
+
+    def loss_terms(self, frame, out, weights):
+        ctx = self.ctx
+        terms = {}
+        if "camera" in out:
+            c = out["camera"]
+            cam = frame.camera
+            target = ctx.image_array(frame)
+            terms["rgb"] = losses.rgb_loss(c["rgb"], target)
+            mask = c["alpha"] > 0.5
+            if weights.rgb2lidar > 0:
+                terms["rgb2lidar"] = losses.bilateral_smoothness(
+                    c["lidar_albedo"], c["albedo"], cam.height, cam.width,
+                    ctx.config.bilateral_sigma, mask)
+            if weights.lidar2rgb > 0:
+                if frame.index not in self.labels:
+                    self.superpixels(frame, out)
+                labels, n = self.labels[frame.index]
+                terms["lidar2rgb"] = losses.superpixel_variance(c["albedo"], labels, n, mask)
+            if weights.nor > 0 and "normal" in cam.priors:
+                terms["nor"] = losses.prior_loss(c["normal"], ctx.prior_array(frame, "normal"), mask)
+            if weights.mat > 0:
+                mat = []
+                if "albedo" in cam.priors:
+                    mat.append(losses.prior_loss(c["albedo"], ctx.prior_array(frame, "albedo"), mask))
+                if "roughness" in cam.priors:
+                    mat.append(losses.prior_loss(c["roughness"], ctx.prior_array(frame, "roughness"), mask))
+                if mat:
+                    terms["mat"] = sum(mat[1:], mat[0])
+        if "lidar" in out:
+            lid = frame.lidar
+            obs = mi.Float(lid.intensity.ravel().astype(np.float32))
+            hit = mi.Bool(lid.hit.ravel())
+            terms["lidar"] = losses.lidar_loss(out["lidar"]["intensity"], obs,
+                                               hit & (out["lidar"]["alpha"] > 0.5))
+        return terms
+
+    def iteration(self, it, weights=None):
+        ctx = self.ctx
+        weights = weights or ctx.config.weights
+        frame = ctx.train_frames[self.rng.integers(0, len(ctx.train_frames))]
+        vals = self.values()
+        out = self.render_frame(frame, vals, camera=weights.rgb > 0, lidar=weights.lidar > 0)
+        terms = self.loss_terms(frame, out, weights)
+        total = weights.combine(terms)
+        ok = safe_step(self.opt, total, ctx.log, ctx.lr_state, "stage-2 iteration %d" % it)
+        if ok:
+            self._clamp()
+        return float(total[0]), {k: float(v[0]) for k, v in terms.items()}, ok
+
+    def _clamp(self):
+        for key in list(self.opt.keys()):
+            k = key.split(".", 1)[1]
+            v = self.opt[key]
+            if k in ("albedo", "lidar_albedo"):
+                self.opt[key] = dr.clip(v, 0.0, 1.0)
+            elif k == "roughness":
+                self.opt[key] = dr.clip(v, 0.02, 1.0)
+            elif k == "sun_irradiance":
+                self.opt[key] = dr.maximum(v, 0.0)
+            elif k == "beam_gains":
+                self.opt[key] = dr.maximum(v, 1e-4)
+            elif k in ("range_exponent", "angle_exponent"):
+                self.opt[key] = dr.clip(v, -1.0, 4.0)

@@ -1,0 +1,87 @@
+"""Safe optimiser steps: NaN detection with rollback, checkpointable Adam state."""
+
+from __future__ import annotations
+
+import numpy as np
+import drjit as dr
+import mitsuba as mi
+
+
+class NonFiniteStep(RuntimeError):
+    pass
+
+
+def make_optimizer(values: dict, lrs: dict):
+    """Adam over ``values`` (key -> Float), one learning rate per key.
+
+    ``mask_updates``: a frame sees a fraction of the Gaussians; the others get
+    a zero gradient and must not drift on stale momentum.
+    """
+    opt = mi.ad.Adam(lr=1e-3, mask_updates=True)
+    for key, value in values.items():
+        opt[key] = value if dr.is_array_v(value) else mi.Float(value)
+        opt.set_learning_rate({key: float(lrs[key])})
+    return opt
+
+
+def grads_finite(opt) -> bool:
+    for key in opt.keys():
+        g = dr.grad(opt[key])
+        if dr.width(g) and not bool(dr.all(dr.isfinite(g), axis=None)):
+            return False
+    return True
+
+
+def safe_step(opt, loss, log, lr_scale_state: dict, what="step"):
+    """Back-propagate ``loss`` and step, unless the loss or a gradient is not
+    finite: then nothing changes, learning rates are halved and False returned.
+    """
+    value = float(loss[0]) if dr.width(loss) else 0.0
+    if not np.isfinite(value):
+        _lower(opt, log, lr_scale_state, "loss is %r" % value, what)
+        return False
+    dr.backward(loss)
+    if not grads_finite(opt):
+        _lower(opt, log, lr_scale_state, "a gradient is not finite", what)
+        for key in opt.keys():
+            dr.clear_grad(opt[key])
+        return False
+    opt.step()
+    return True
+
+
+def _lower(opt, log, state, reason, what):
+    state["scale"] = state.get("scale", 1.0) * 0.5
+    for key in opt.keys():
+        lr = opt.learning_rate(key)
+        opt.set_learning_rate({key: float(lr) * 0.5})
+    state["rollbacks"] = state.get("rollbacks", 0) + 1
+    log("[fit] %s skipped and rolled back (%s); learning rates halved (now x%.3g)"
+        % (what, reason, state["scale"]))
+
+
+def optimizer_state(opt) -> dict:
+    """Adam state as numpy arrays (for checkpoints)."""
+    out = {}
+    for key, (value, _promoted, lr, extra) in opt.state.items():
+        t, m, v, _ = extra
+        out["value/" + key] = np.array(dr.detach(value), np.float32)
+        out["m/" + key] = np.array(m, np.float32)
+        out["v/" + key] = np.array(v, np.float32)
+        out["t/" + key] = np.array(t).reshape(-1).astype(np.int64)
+        out["lr/" + key] = np.float64(lr if lr is not None else opt.lr)
+    return out
+
+
+def restore_optimizer(opt, state: dict):
+    """Put checkpointed values and moments back into ``opt`` (same keys)."""
+    for key in list(opt.keys()):
+        if "value/" + key not in state:
+            continue
+        opt[key] = mi.Float(state["value/" + key])
+        value, promoted, lr, extra = opt.state[key]
+        if state["m/" + key].shape[0] == dr.width(value):
+            t = type(extra[0])(int(state["t/" + key][0])) if extra[0] is not None else extra[0]
+            opt.state[key] = (value, promoted, lr,
+                              (t, mi.Float(state["m/" + key]), mi.Float(state["v/" + key]), extra[3]))
+        opt.set_learning_rate({key: float(state["lr/" + key])})
