@@ -1,0 +1,371 @@
+r"""LiDAR sensor response: which intensity a sensor reports for a return.
+
+The ``lidar_return`` integrator renders
+
+.. math::  I = g_{beam}\,(\rho + \pi f_s)\,P_e \cos^a\theta / (\pi d^b)
+
+The paper's physics is ``a = 1, b = 2, g = 1``. Real sensors differ: KITTI's
+HDL-64E reports range-compensated reflectivity (on the shared excerpt the
+ground's median stays ~0.16 from 3 to 30 m while cos/d^2 falls a hundredfold,
+i.e. ``b ~ 0``), Waymo's report raw return strength, and every beam of a
+spinning LiDAR has its own gain. :func:`estimate_response` fits ``a``, ``b``
+and the per-beam gains from observed returns on the current geometry.
+
+The model is linear in logs. With one unknown reflectance per surface
+element (``surface_id``: e.g. the Gaussian with the largest blend weight
+along the beam),
+
+.. math::  \log I_i = u_{s(i)} + v_{beam(i)} + a \log\cos\theta_i - b \log d_i
+
+a two-way fixed-effects regression. It is solved exactly by eliminating the
+surface effects (per-surface weighted demeaning, i.e. the Schur complement of
+the diagonal surface block of the normal equations), which leaves a dense
+``(n_beams + 2)`` system, and made robust by iteratively reweighted least
+squares with Huber weights (scale: the residuals' MAD) plus trimming of
+residuals beyond ``trim`` scales. Only within-surface variation of range,
+angle and beam identifies ``a``, ``b`` and the gains; surfaces seen once
+carry no information about them (they only get their own ``rho``).
+
+Gauge: surface effects and gains share a common factor; it is fixed by
+``median(beam_gains) = 1`` and the constant goes into ``rho``, reported in
+the integrator's convention ``rho = pi exp(u) / P_e`` (the specular term is
+neglected: fit on matte surfaces, or rely on the robust weights).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: Returns at more grazing incidence than this are ignored (cos theta).
+MIN_COS = 0.05
+#: Huber threshold in units of the residual scale (95 % efficiency for Gaussian noise).
+HUBER_K = 1.345
+
+
+@dataclass
+class SensorResponse:
+    """Fitted response; ``rho`` is per surface id (NaN where unobserved)."""
+    range_exponent: float
+    angle_exponent: float
+    beam_gains: np.ndarray
+    rho: np.ndarray
+    residual_rms: float
+    n_used: int
+    n_surfaces_used: int = 0
+    iterations: int = 0
+    extra: dict = field(default_factory=dict)
+
+    def integrator_dict(self, model: str = "pbr") -> dict:
+        """A ``mi.load_dict`` dictionary for the ``lidar_return`` integrator."""
+        return {"type": "lidar_return", "model": model,
+                "range_exponent": float(self.range_exponent),
+                "angle_exponent": float(self.angle_exponent),
+                "beam_gains": format_gains(self.beam_gains)}
+
+    def integrator_xml(self, model: str = "pbr", indent: str = "    ") -> str:
+        """The ``<integrator type="lidar_return">`` element for ``scene_lidar.xml``."""
+        d = self.integrator_dict(model)
+        return (f'{indent}<integrator type="lidar_return">\n'
+                f'{indent}    <string name="model" value="{model}"/>\n'
+                f'{indent}    <float name="range_exponent" value="{d["range_exponent"]:.6g}"/>\n'
+                f'{indent}    <float name="angle_exponent" value="{d["angle_exponent"]:.6g}"/>\n'
+                f'{indent}    <string name="beam_gains" value="{d["beam_gains"]}"/>\n'
+                f'{indent}</integrator>\n')
+
+    def to_json(self) -> dict:
+        return {"range_exponent": float(self.range_exponent),
+                "angle_exponent": float(self.angle_exponent),
+                "beam_gains": [float(g) for g in self.beam_gains],
+                "residual_rms": float(self.residual_rms), "n_used": int(self.n_used),
+                "n_surfaces_used": int(self.n_surfaces_used),
+                "iterations": int(self.iterations), **self.extra}
+
+    def predict(self, rho, distance, cos_theta, beam, power: float = 1.0) -> np.ndarray:
+        """Intensity of Lambertian returns under this response (numpy)."""
+        g = np.asarray(self.beam_gains)[np.asarray(beam, np.int64)]
+        c = np.clip(np.asarray(cos_theta, np.float64), 0.0, 1.0)
+        return (g * np.asarray(rho) * power * c ** self.angle_exponent
+                / (np.pi * np.asarray(distance, np.float64) ** self.range_exponent))
+
+
+def format_gains(gains) -> str:
+    return ", ".join("%.6g" % g for g in np.asarray(gains, np.float64).ravel())
+
+
+def _weighted_group_mean(values, groups, weights, n_groups, wsum):
+    s = np.bincount(groups, weights=values * weights, minlength=n_groups)
+    return s / np.maximum(wsum, 1e-300)
+
+
+class _SchurBeamBlock:
+    """``M^T diag(1/ws) M`` with ``M[s, k] = sum of weights of surface s, beam k``.
+
+    The sparsity pattern (which surface saw which beam) is found once; each
+    call sums the current weights into it and multiplies densified chunks of
+    surfaces (memory O(chunk * n_beams)). ``einsum`` rather than ``@``: on
+    the 2-core development machine it was 10x faster than the BLAS call.
+    """
+
+    def __init__(self, surf, col, nb, chunk=20000):
+        self.nb = nb
+        key = surf * nb + col
+        uniq, inv = np.unique(key, return_inverse=True)
+        self.inv = inv.ravel()
+        self.n_entries = uniq.size
+        self.s_e, self.k_e = uniq // nb, uniq % nb
+        if uniq.size:
+            bounds = np.arange(0, int(self.s_e[-1]) + chunk + 1, chunk)
+            starts = np.searchsorted(self.s_e, bounds)
+            self.chunks = [(lo, hi) for lo, hi in zip(starts[:-1], starts[1:]) if hi > lo]
+        else:
+            self.chunks = []
+
+    def __call__(self, weight, ws):
+        m = np.bincount(self.inv, weights=weight, minlength=self.n_entries)
+        out = np.zeros((self.nb, self.nb))
+        for lo, hi in self.chunks:
+            s0 = int(self.s_e[lo])
+            rows = self.s_e[lo:hi] - s0
+            dense = np.zeros((int(rows[-1]) + 1, self.nb))
+            dense[rows, self.k_e[lo:hi]] = m[lo:hi]
+            scaled = dense / np.maximum(ws[s0:s0 + dense.shape[0]], 1e-300)[:, None]
+            out += np.einsum("ij,ik->jk", scaled, dense)
+        return out
+
+
+def estimate_response(intensity, distance, cos_theta, beam, surface_id, n_beams: int,
+                      n_surfaces: int | None = None, *, fit_range: bool = True,
+                      fit_angle: bool = True, fit_gains: bool = True,
+                      range_exponent: float = 2.0, angle_exponent: float = 1.0,
+                      power: float = 1.0, robust: str = "huber", trim: float = 4.0,
+                      iterations: int = 20, min_cos: float = MIN_COS,
+                      min_returns_per_beam: int = 20, tol: float = 1e-7) -> SensorResponse:
+    """Fit range/angle exponents, per-beam gains and per-surface reflectance.
+
+    Args (one entry per observed return; numpy arrays of equal length):
+        intensity: reported intensity ``I`` (returns with ``I <= 0`` or non-finite
+            values are ignored).
+        distance: range ``d`` (> 0).
+        cos_theta: incidence cosine from the current geometry (returns with
+            ``cos < min_cos`` are ignored).
+        beam: beam (film row) index, ``0 <= beam < n_beams``.
+        surface_id: id of the surface element hit (non-negative int).
+        n_beams: number of beams (length of ``beam_gains``).
+        n_surfaces: length of the returned ``rho`` (default ``max(surface_id) + 1``).
+        fit_range / fit_angle / fit_gains: ``False`` holds that part fixed at
+            ``range_exponent`` / ``angle_exponent`` / gains 1.
+        power: the laser power ``P_e`` the integrator will use (scales ``rho``).
+        robust: ``huber`` (IRLS, default), ``l2`` (plain least squares).
+        trim: residuals beyond ``trim`` robust scales get weight 0 (0 = no trimming).
+        min_returns_per_beam: beams with fewer used returns keep gain 1 (before
+            the median gauge) instead of a noisy estimate.
+
+    Returns:
+        :class:`SensorResponse`. ``residual_rms`` is the RMS of the log-residuals
+        over the returns kept by the final weights (inliers).
+    """
+    I = np.asarray(intensity, np.float64).ravel()
+    d = np.asarray(distance, np.float64).ravel()
+    c = np.asarray(cos_theta, np.float64).ravel()
+    b = np.asarray(beam).ravel().astype(np.int64)
+    s = np.asarray(surface_id).ravel().astype(np.int64)
+    n = I.size
+    if not all(a.size == n for a in (d, c, b, s)):
+        raise ValueError("estimate_response: intensity, distance, cos_theta, beam and "
+                         "surface_id must have the same length")
+    n_beams = int(n_beams)
+    if n_surfaces is None:
+        n_surfaces = int(s.max()) + 1 if n else 0
+    if robust not in ("huber", "l2"):
+        raise ValueError("estimate_response: robust must be 'huber' or 'l2'")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        use = (np.isfinite(I) & np.isfinite(d) & np.isfinite(c) & (I > 0) & (d > 0)
+               & (c >= min_cos) & (b >= 0) & (b < n_beams) & (s >= 0) & (s < n_surfaces))
+    idx = np.nonzero(use)[0]
+    gains = np.ones(n_beams)
+    rho = np.full(n_surfaces, np.nan)
+    if idx.size == 0:
+        return SensorResponse(float(range_exponent), float(angle_exponent), gains, rho,
+                              float("nan"), 0)
+    y = np.log(I[idx])
+    x_cos = np.log(c[idx])
+    x_d = -np.log(d[idx])
+    bb = b[idx]
+    # Compact surface ids of the used returns.
+    s_uniq, ss = np.unique(s[idx], return_inverse=True)
+    n_s = s_uniq.size
+
+    # Beams with enough returns get a free gain; the first of them is the
+    # reference (gauge), re-centred to median 1 at the end.
+    counts = np.bincount(bb, minlength=n_beams)
+    free_beams = np.nonzero(counts >= max(1, min_returns_per_beam))[0] if fit_gains else np.array([], int)
+    free_beams = free_beams[1:] if free_beams.size else free_beams
+    col_of_beam = np.full(n_beams, -1, np.int64)
+    col_of_beam[free_beams] = np.arange(free_beams.size)
+    n_cols = free_beams.size + int(fit_angle) + int(fit_range)
+
+    fixed = np.zeros_like(y)
+    if not fit_angle:
+        fixed += angle_exponent * x_cos
+    if not fit_range:
+        fixed += range_exponent * x_d
+    target = y - fixed
+
+    w = np.ones_like(y)
+    theta = np.zeros(n_cols)
+    u = np.zeros(n_s)
+    it = 0
+    scale = float("nan")
+    schur = None
+    for it in range(1, int(iterations) + 1):
+        ws = np.bincount(ss, weights=w, minlength=n_s)
+        # Within-surface demeaning of the target and of the dense columns.
+        t_dm = target - _weighted_group_mean(target, ss, w, n_s, ws)[ss]
+        dense = []
+        if fit_angle:
+            dense.append(x_cos - _weighted_group_mean(x_cos, ss, w, n_s, ws)[ss])
+        if fit_range:
+            dense.append(x_d - _weighted_group_mean(x_d, ss, w, n_s, ws)[ss])
+        A = np.zeros((n_cols, n_cols))
+        rhs = np.zeros(n_cols)
+        nb = free_beams.size
+        if nb:
+            col = col_of_beam[bb]
+            on = col >= 0
+            # Beam indicator block: E^T W E - M^T W_s^-1 M with M[s, k] = sum_{i in s, beam k} w_i
+            A[:nb, :nb] += np.diag(np.bincount(col[on], weights=w[on], minlength=nb))
+            if schur is None:
+                schur = _SchurBeamBlock(ss[on], col[on], nb)
+            A[:nb, :nb] -= schur(w[on], ws)
+            rhs[:nb] = np.bincount(col[on], weights=(w * t_dm)[on], minlength=nb)
+            for j, x in enumerate(dense):
+                # cross terms: sum_{i in beam k} w_i x_dm_i (x demeaned -> Schur exact)
+                A[:nb, nb + j] = A[nb + j, :nb] = np.bincount(col[on], weights=(w * x)[on],
+                                                               minlength=nb)
+        for j, xj in enumerate(dense):
+            for k, xk in enumerate(dense):
+                A[nb + j, nb + k] = np.sum(w * xj * xk)
+            rhs[nb + j] = np.sum(w * xj * t_dm)
+        # Tiny ridge: keeps the system solvable when a column has no
+        # within-surface variation (the parameter then stays at 0 / its prior).
+        ridge = 1e-9 * max(float(np.trace(A)) / max(n_cols, 1), 1e-300)
+        theta_new = np.linalg.solve(A + ridge * np.eye(n_cols), rhs) if n_cols else theta
+        # Surface effects from the current theta.
+        pred_wo_u = np.zeros_like(y)
+        if nb:
+            pred_wo_u += np.where(col_of_beam[bb] >= 0, theta_new[np.maximum(col_of_beam[bb], 0)], 0.0)
+        k = nb
+        if fit_angle:
+            pred_wo_u += theta_new[k] * x_cos
+            k += 1
+        if fit_range:
+            pred_wo_u += theta_new[k] * x_d
+        u = _weighted_group_mean(target - pred_wo_u, ss, w, n_s, ws)
+        resid = target - pred_wo_u - u[ss]
+        step = float(np.max(np.abs(theta_new - theta))) if n_cols else 0.0
+        theta = theta_new
+        if robust == "l2" and trim <= 0:
+            break
+        # Robust weights from the residuals of surfaces with > 1 return (a
+        # surface seen once fits exactly and says nothing about the scale).
+        multi = np.bincount(ss, minlength=n_s)[ss] > 1
+        r_ref = resid[multi] if multi.any() else resid
+        scale = 1.4826 * float(np.median(np.abs(r_ref - np.median(r_ref))))
+        scale = max(scale, 1e-12)
+        a = np.abs(resid) / scale
+        w = np.ones_like(y) if robust == "l2" else np.minimum(1.0, HUBER_K / np.maximum(a, 1e-12))
+        if trim > 0:
+            w = np.where(a > trim, 0.0, w)
+        if it > 1 and step < tol:
+            break
+
+    # Unpack, fix the gauge (median gain 1) and move the constant into rho.
+    log_g = np.zeros(n_beams)
+    nb = free_beams.size
+    if nb:
+        log_g[free_beams] = theta[:nb]
+    k = nb
+    a_exp = float(theta[k]) if fit_angle else float(angle_exponent)
+    k += int(fit_angle)
+    b_exp = float(theta[k]) if fit_range else float(range_exponent)
+    observed = counts > 0
+    shift = float(np.log(np.median(np.exp(log_g[observed])))) if fit_gains and observed.any() else 0.0
+    log_g -= shift
+    u = u + shift
+    gains = np.exp(log_g)
+    rho[s_uniq] = np.pi * np.exp(u) / float(power)
+    inl = w > 0
+    rms = float(np.sqrt(np.mean(resid[inl] ** 2))) if inl.any() else float("nan")
+    return SensorResponse(b_exp, a_exp, gains, rho, rms, int(idx.size), int(n_s), it,
+                          extra={"residual_scale": scale, "n_inliers": int(inl.sum())})
+
+
+# ----------------------------------------------------------------------------
+def ground_mask(points, sensor_height: float = 1.73, tolerance: float = 0.3) -> np.ndarray:
+    """Points of a sweep (sensor frame, z up) within ``tolerance`` of the ground
+    plane ``z = -sensor_height`` (KITTI's HDL-64E sits 1.73 m up)."""
+    p = np.asarray(points, np.float64)
+    return np.abs(p[:, 2] + sensor_height) < tolerance
+
+
+DEFAULT_RANGE_BINS = ((3.0, 5.0), (5.0, 8.0), (8.0, 12.0), (12.0, 20.0), (20.0, 30.0),
+                      (30.0, 50.0))
+
+
+def intensity_statistics(points, ranges=DEFAULT_RANGE_BINS, intensity=None, origin=None,
+                         mask=None) -> list:
+    """Median intensity by range bin: tells a reflectivity sensor from a raw one.
+
+    Args:
+        points: ``(N, 4)`` x, y, z, intensity (or ``(N, 3)`` with ``intensity``).
+        ranges: bins as ``(lo, hi)`` pairs in metres, or a sorted list of edges.
+        origin: the sensor position (default: the origin, i.e. sensor-frame points).
+        mask: optional boolean selection (e.g. :func:`ground_mask`).
+
+    Returns one dict per bin: ``lo``, ``hi``, ``n``, ``median``, ``p25``, ``p75``
+    (NaN for empty bins) and ``inv_d2``, the bin's median ``1/d^2`` relative to
+    the first non-empty bin's. A raw sensor's median falls like ``inv_d2``; a
+    range-compensated one (KITTI: ~0.16 for the ground from 3 to 30 m) stays flat.
+    """
+    p = np.asarray(points, np.float64)
+    if intensity is None:
+        if p.ndim != 2 or p.shape[1] < 4:
+            raise ValueError("intensity_statistics: points must be (N, 4) x, y, z, intensity")
+        inten = p[:, 3]
+    else:
+        inten = np.asarray(intensity, np.float64).ravel()
+    xyz = p[:, :3] - (0.0 if origin is None else np.asarray(origin, np.float64))
+    d = np.linalg.norm(xyz, axis=1)
+    sel = np.isfinite(inten) & np.isfinite(d)
+    if mask is not None:
+        sel &= np.asarray(mask, bool)
+    ranges = list(ranges)
+    if ranges and np.ndim(ranges[0]) == 0:
+        ranges = list(zip(ranges[:-1], ranges[1:]))
+    out, ref = [], None
+    for lo, hi in ranges:
+        m = sel & (d >= lo) & (d < hi)
+        v = inten[m]
+        row = {"lo": float(lo), "hi": float(hi), "n": int(m.sum())}
+        if v.size:
+            row.update(median=float(np.median(v)), p25=float(np.percentile(v, 25)),
+                       p75=float(np.percentile(v, 75)))
+            inv = float(np.median(1.0 / d[m] ** 2))
+            ref = inv if ref is None else ref
+            row["inv_d2"] = inv / ref
+        else:
+            row.update(median=float("nan"), p25=float("nan"), p75=float("nan"),
+                       inv_d2=float("nan"))
+        out.append(row)
+    return out
+
+
+def format_statistics(rows) -> str:
+    """The :func:`intensity_statistics` rows as a small text table."""
+    lines = ["range [m]      n    median   p25     p75   rel. 1/d^2"]
+    for r in rows:
+        lines.append("%5.1f-%-5.1f %7d  %6.3f  %6.3f  %6.3f  %8.4f"
+                     % (r["lo"], r["hi"], r["n"], r["median"], r["p25"], r["p75"], r["inv_d2"]))
+    return "\n".join(lines)
