@@ -1,0 +1,195 @@
+"""The frames of a scene: which camera renders frame i, and where things are then.
+
+Three kinds of scene are understood, recognised by the files next to the
+original XML:
+
+``frames.json`` (an imported or fitted scene, see ``docs/scene_format.md``)
+    Frame ``i`` is rendered by the sensor ``camera_NNNN``; dynamic objects are
+    placed with :func:`mi_invrgbl.scene_graph.set_frame`.
+``trajectory.json`` (the synthetic street's ground truth, ``gt/scene_*.xml``)
+    The XML holds frame 0; frame ``i`` moves its sensor to the recorded camera
+    pose and the moving car (and its headlights at night) to theirs.
+neither (any other scene)
+    Every camera sensor (not ``lidar``) is one frame, in file order.
+
+Applications render edited copies of a scene, so the frames are looked up
+beside the *original* file and applied to the loaded *edited* scene.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+
+import numpy as np
+
+from ..errors import UserError
+
+
+@dataclasses.dataclass
+class Frame:
+    index: int          #: frame number (frames.json / trajectory index, or sensor order)
+    sensor_id: str      #: id of the camera sensor that renders it ("" = by position)
+    sensor_pos: int     #: position among scene.sensors() (plain scenes)
+
+    @property
+    def name(self) -> str:
+        return "frame_%04d" % self.index
+
+
+def is_lidar(sensor) -> bool:
+    return type(sensor).__name__ == "LidarSensor" or sensor.class_name() == "LidarSensor"
+
+
+def parse_selection(text: str | None, count: int) -> list[int]:
+    """``--frames`` (``A``, ``A:B``, ``A:B:S``, python-slice semantics) -> positions."""
+    if not text:
+        return list(range(count))
+    try:
+        parts = [int(p) if p.strip() else None for p in text.split(":")]
+    except ValueError:
+        raise UserError("--frames: expected A, A:B or A:B:S, got '%s'" % text) from None
+    if len(parts) == 1:
+        idx = [parts[0]] if 0 <= parts[0] < count else []
+    elif len(parts) <= 3:
+        idx = list(range(count))[slice(*parts)]
+    else:
+        raise UserError("--frames: expected A, A:B or A:B:S, got '%s'" % text)
+    if not idx:
+        raise UserError("--frames %s selects no frame (the scene has %d)" % (text, count))
+    return idx
+
+
+class FrameSet:
+    """Frames of a scene (see the module docstring) and how to pose each."""
+
+    def __init__(self, scene_path: str, scene, selection: str | None = None):
+        self.scene_path = os.path.abspath(scene_path)
+        folder = os.path.dirname(self.scene_path)
+        self.frames_json = os.path.join(folder, "frames.json")
+        self.trajectory_json = os.path.join(folder, "trajectory.json")
+        self.lights_json = os.path.join(folder, "lights.json")
+        sensors = list(scene.sensors())
+        ids = [s.id() for s in sensors]
+        self._params = None
+        self._poser = None
+        self._scene_graph = None
+        if os.path.isfile(self.frames_json):
+            self.kind = "frames.json"
+            self._read_frames_json(ids)
+        elif os.path.isfile(self.trajectory_json) and "sensor" in ids:
+            self.kind = "synthetic"
+            self._read_trajectory(ids)
+        else:
+            self.kind = "sensors"
+            self.all = [Frame(k, ids[k], k) for k, s in enumerate(sensors) if not is_lidar(s)]
+        if not self.all:
+            raise UserError("%s: the scene has no camera sensor to render" % scene_path)
+        self.frames = [self.all[k] for k in parse_selection(selection, len(self.all))]
+
+    # ------------------------------------------------------------- reading
+    def _read_frames_json(self, ids):
+        try:
+            with open(self.frames_json) as f:
+                self.info = json.load(f)
+        except (OSError, ValueError) as exc:
+            raise UserError("%s: cannot read (%s)" % (self.frames_json, exc)) from None
+        self.all = []
+        for entry in self.info.get("frames", []):
+            cam = entry.get("camera")
+            if cam in ids:
+                self.all.append(Frame(int(entry["index"]), cam, ids.index(cam)))
+        self._entries = {int(e["index"]): e for e in self.info.get("frames", [])}
+
+    def _read_trajectory(self, ids):
+        with open(self.trajectory_json) as f:
+            self.info = json.load(f)
+        from ..synthetic.trajectory import KITTI_FROM_MITSUBA
+        self._cams = [np.asarray(m) @ KITTI_FROM_MITSUBA for m in self.info["world_from_cam"]]
+        self._cars = np.asarray(self.info.get("world_from_moving_car", []), np.float64)
+        self.all = [Frame(i, "sensor", ids.index("sensor")) for i in range(len(self._cams))]
+
+    # ------------------------------------------------------------- posing
+    def apply(self, scene, frame: Frame):
+        """Put ``scene`` into the state of ``frame``; returns the sensor that renders it."""
+        import mitsuba as mi
+        sensor = scene.sensors()[frame.sensor_pos]
+        if self.kind == "synthetic":
+            if self._poser is None:
+                self._poser = self._synthetic_poser(scene)
+            if self._poser is not None:
+                self._poser.set_frame(frame.index, self._cams[frame.index])
+            else:
+                params = self._parameters(scene)
+                params["sensor.to_world"] = mi.Transform4f(mi.ScalarMatrix4f(self._cams[frame.index]))
+                params.update()
+        elif self.kind == "frames.json" and self._has_objects():
+            self._set_objects(scene, frame.index)
+        return sensor
+
+    def _parameters(self, scene):
+        import mitsuba as mi
+        if self._params is None:
+            self._params = mi.traverse(scene)
+        return self._params
+
+    def _synthetic_poser(self, scene):
+        from ..synthetic.render import FramePoser
+        if "moving_car.vertex_positions" not in self._parameters(scene) or not len(self._cars):
+            return None
+        headlights = []
+        if os.path.isfile(self.lights_json):
+            with open(self.lights_json) as f:
+                headlights = json.load(f).get("night", {}).get("headlights", [])
+        return FramePoser(scene, self._cars, headlights)
+
+    def _has_objects(self):
+        return any(e.get("objects") for e in self._entries.values())
+
+    def _set_objects(self, scene, index):
+        try:
+            from .. import scene_graph
+        except ImportError:
+            scene_graph = None
+        if scene_graph is not None:
+            if self._scene_graph is None:
+                self._scene_graph = scene_graph.Frames.load(self.scene_path)
+            scene_graph.set_frame(scene, self._scene_graph, index)
+            return
+        # Until scene_graph exists: objects were loaded at their frame-0 pose.
+        from .posing import NodePoser
+        if self._poser is None:
+            first = self._entries[min(self._entries)]
+            params = self._parameters(scene)
+            self._poser = {name: NodePoser(scene, name, np.asarray(pose), params)
+                           for name, pose in first.get("objects", {}).items()
+                           if name + ".data" in params or name + ".vertex_positions" in params}
+        for name, poser in self._poser.items():
+            pose = self._entries[index].get("objects", {}).get(name)
+            if pose is not None:
+                poser.set_pose(np.asarray(pose), update=False)
+        self._parameters(scene).update()
+
+    # ------------------------------------------------------------ queries
+    def camera_to_world(self, scene, frame: Frame) -> np.ndarray:
+        """``to_world`` of the frame's camera (Mitsuba convention: +z forward, +y up)."""
+        if self.kind == "synthetic":
+            return np.asarray(self._cams[frame.index])
+        sensor = scene.sensors()[frame.sensor_pos]
+        return np.array(sensor.world_transform().matrix, np.float64).reshape(4, 4)
+
+    def lidar_poses(self, scene) -> list[tuple[int, np.ndarray]]:
+        """(frame index, world_from_lidar) of the scene's own LiDAR, per selected frame."""
+        if self.kind == "frames.json":
+            out = []
+            for f in self.frames:
+                m = self._entries.get(f.index, {}).get("lidar_to_world")
+                if m is not None:
+                    out.append((f.index, np.asarray(m, np.float64)))
+            return out
+        if self.kind == "synthetic" and "world_from_velo" in self.info:
+            return [(f.index, np.asarray(self.info["world_from_velo"][f.index], np.float64))
+                    for f in self.frames]
+        return [(k, np.array(s.world_transform().matrix, np.float64).reshape(4, 4))
+                for k, s in enumerate(s for s in scene.sensors() if is_lidar(s))]

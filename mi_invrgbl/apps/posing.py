@@ -1,0 +1,169 @@
+"""Poses: parsing them from the command line and files, checking them, moving shapes.
+
+A pose is a 4x4 ``world_from_object`` matrix. On the command line it is
+``x,y,z`` or ``x,y,z,yaw`` (yaw in degrees about +z, from +x towards +y) or
+16 numbers (row-major 4x4). Trajectory files hold one pose per frame: JSON
+(a list of poses in either form, or a dict with ``poses``, ``world_from_velo``
+or ``lidar_to_world`` per frame) or text with one pose per line (KITTI's
+12-number 3x4 rows, or 4 numbers ``x y z yaw``).
+
+:class:`NodePoser` moves one shape of a loaded scene rigidly, Gaussians or
+mesh, by rewriting its parameters through ``mi.traverse``: updating in place
+keeps the compiled kernels valid, and the ``invrgbl`` integrator notices the
+new geometry (its visibility cache is keyed on the parameter arrays).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+
+import numpy as np
+
+from ..errors import UserError
+
+
+def pose_from_values(values, what: str = "--pose") -> np.ndarray:
+    """A 4x4 pose from 3 (x y z), 4 (x y z yaw_deg), 12 (3x4) or 16 (4x4) numbers."""
+    v = np.asarray(values, np.float64).ravel()
+    if not np.all(np.isfinite(v)):
+        raise UserError("%s: pose values must be finite numbers" % what)
+    m = np.eye(4)
+    if v.size in (3, 4):
+        m[:3, 3] = v[:3]
+        if v.size == 4:
+            c, s = math.cos(math.radians(v[3])), math.sin(math.radians(v[3]))
+            m[:2, :2] = [[c, -s], [s, c]]
+    elif v.size in (12, 16):
+        m[:v.size // 4] = v.reshape(-1, 4)
+        lin = m[:3, :3]
+        scale = np.cbrt(np.linalg.det(lin))
+        if not scale > 1e-9 or not np.allclose((lin / scale) @ (lin / scale).T, np.eye(3), atol=1e-3):
+            raise UserError("%s: the 3x3 part must be a rotation (optionally uniformly scaled)"
+                            % what)
+    else:
+        raise UserError("%s: expected x,y,z or x,y,z,yaw or 12/16 matrix values, got %d numbers"
+                        % (what, v.size))
+    return m
+
+
+def parse_pose(text: str, what: str = "--pose") -> np.ndarray:
+    try:
+        values = [float(t) for t in text.replace(",", " ").split()]
+    except ValueError:
+        raise UserError("%s: cannot read '%s' as numbers (use x,y,z,yaw)" % (what, text)) from None
+    return pose_from_values(values, what)
+
+
+def read_trajectory(path: str, key: str | None = None) -> list[np.ndarray]:
+    """Poses of a trajectory file (see the module docstring)."""
+    if not os.path.isfile(path):
+        raise UserError("%s: trajectory file not found" % path)
+    what = path
+    if path.endswith(".json"):
+        try:
+            with open(path) as f:
+                data = json.load(f)
+        except ValueError as exc:
+            raise UserError("%s: not valid JSON (%s)" % (path, exc)) from None
+        if isinstance(data, dict):
+            keys = [key] if key else ["poses", "world_from_velo", "lidar_to_world", "frames"]
+            found = [k for k in keys if k in data]
+            if not found:
+                raise UserError("%s: expected a list of poses or a dict with one of %s"
+                                % (path, ", ".join(keys)))
+            data = data[found[0]]
+            if found[0] == "frames":   # frames.json
+                data = [f.get("lidar_to_world") for f in data]
+        if not isinstance(data, list) or not data:
+            raise UserError("%s: no poses in the file" % path)
+        poses = []
+        for i, item in enumerate(data):
+            if item is None:
+                raise UserError("%s: pose %d is missing" % (path, i))
+            poses.append(pose_from_values(np.asarray(item, np.float64), "%s (pose %d)" % (what, i)))
+        return poses
+    try:
+        rows = np.loadtxt(path, ndmin=2)
+    except ValueError as exc:
+        raise UserError("%s: cannot read poses (%s)" % (path, exc)) from None
+    if rows.size == 0:
+        raise UserError("%s: no poses in the file" % path)
+    return [pose_from_values(r, "%s (line %d)" % (what, i + 1)) for i, r in enumerate(rows)]
+
+
+def check_inside(position, bbox, what: str, margin: float = 2.0) -> None:
+    """Refuse a position outside the scene's bounding box (plus ``margin`` metres)."""
+    lo = np.array(bbox.min, np.float64).ravel() - margin
+    hi = np.array(bbox.max, np.float64).ravel() + margin
+    p = np.asarray(position, np.float64)[:3]
+    if not bbox.valid() or np.any(p < lo) or np.any(p > hi):
+        raise UserError("%s: position (%.2f, %.2f, %.2f) lies outside the scene, whose bounds "
+                        "are x %.1f..%.1f, y %.1f..%.1f, z %.1f..%.1f (m)"
+                        % ((what,) + tuple(p) + (lo[0] + margin, hi[0] - margin, lo[1] + margin,
+                                                 hi[1] - margin, lo[2] + margin, hi[2] - margin)))
+
+
+# ------------------------------------------------------------------ moving
+
+
+def _split(m):
+    lin = np.asarray(m, np.float64)[:3, :3]
+    scale = float(np.cbrt(np.linalg.det(lin)))
+    return lin / scale, scale, np.asarray(m, np.float64)[:3, 3]
+
+
+class NodePoser:
+    """Moves one Gaussian or mesh shape of a loaded scene rigidly.
+
+    ``loaded_pose`` is the ``world_from_object`` the shape was loaded with
+    (its XML ``to_world``); :meth:`set_pose` places the object frame at a new pose.
+    """
+
+    def __init__(self, scene, shape_id: str, loaded_pose=None, params=None):
+        import mitsuba as mi
+        self.params = params if params is not None else mi.traverse(scene)
+        self.id = shape_id
+        p = self.params
+        R0, s0, t0 = _split(np.eye(4) if loaded_pose is None else loaded_pose)
+        if shape_id + ".data" in p:
+            from ..plugins.gaussian_ply import quaternion_to_matrix
+            self.kind = "gaussians"
+            data = np.array(p[shape_id + ".data"], np.float64).reshape(-1, 10)
+            self.centers = ((data[:, :3] - t0) @ R0) / s0        # R0^T (c - t0) / s0
+            self.scales = data[:, 3:6] / s0
+            q = np.concatenate([data[:, 9:10], data[:, 6:9]], axis=1)   # w x y z
+            self.rotations = R0.T[None] @ quaternion_to_matrix(q)
+            self.normals = (np.array(p[shape_id + ".normal"], np.float64).reshape(-1, 3) @ R0
+                            if shape_id + ".normal" in p else None)
+        elif shape_id + ".vertex_positions" in p:
+            self.kind = "mesh"
+            v = np.array(p[shape_id + ".vertex_positions"], np.float64).reshape(-1, 3)
+            self.vertices = ((v - t0) @ R0) / s0
+            key = shape_id + ".vertex_normals"
+            n = np.array(p[key], np.float64).reshape(-1, 3) if key in p else np.zeros((0, 3))
+            self.vertex_normals = n @ R0 if n.size else None
+        else:
+            raise UserError("shape '%s' cannot be moved (neither Gaussians nor a mesh)" % shape_id)
+
+    def set_pose(self, pose, update: bool = True) -> None:
+        import mitsuba as mi
+        from ..plugins.gaussian_ply import matrix_to_quaternion
+        R, s, t = _split(pose)
+        p = self.params
+        if self.kind == "gaussians":
+            q = matrix_to_quaternion(R[None] @ self.rotations)      # w x y z
+            data = np.concatenate([self.centers * s @ R.T + t, self.scales * s,
+                                   q[:, 1:4], q[:, :1]], axis=1)
+            p[self.id + ".data"] = mi.Float(data.astype(np.float32).ravel())
+            if self.normals is not None:
+                p[self.id + ".normal"] = mi.TensorXf((self.normals @ R.T).astype(np.float32))
+        else:
+            v = self.vertices * s @ R.T + t
+            p[self.id + ".vertex_positions"] = mi.Float(v.astype(np.float32).ravel())
+            if self.vertex_normals is not None:
+                p[self.id + ".vertex_normals"] = mi.Float(
+                    (self.vertex_normals @ R.T).astype(np.float32).ravel())
+        if update:
+            p.update()

@@ -1,0 +1,77 @@
+"""``mi-invrgbl relight SCENE``: render the frames under a new sky and sun.
+
+One of ``--sun-elevation/--sun-azimuth``, ``--time`` or ``--light-from``
+picks the new lighting; shadows are traced for the new sun. Writes the edited
+``scene.xml`` (+ ``scene.diff``), ``frame_NNNN.{exr,png}`` and
+``sequence.{mp4,gif}`` into the output folder. See docs/applications.md.
+"""
+
+from __future__ import annotations
+
+from ..apps import lighting_edit, relight, sequence
+from ..apps.frames import FrameSet
+from ..apps.xml_edit import SceneDoc
+
+
+def _floats(text):
+    from ..errors import UserError
+    try:
+        return [float(t) for t in text.replace(",", " ").split()]
+    except ValueError:
+        raise UserError("expected numbers separated by commas, got '%s'" % text) from None
+
+
+def add_parser(sub):
+    p = sub.add_parser("relight", help="render a scene under a new sun and sky (moving shadows)",
+                       description=__doc__)
+    p.add_argument("scene", help="Mitsuba XML scene (fitted, imported, or any scene of our plugins)")
+    g = p.add_argument_group("new lighting (one of)")
+    g.add_argument("--sun-elevation", type=float, default=None, metavar="DEG",
+                   help="sun elevation above the horizon (degrees)")
+    g.add_argument("--sun-azimuth", type=float, default=None, metavar="DEG",
+                   help="sun azimuth, from world +x towards +y (degrees)")
+    g.add_argument("--time", default=None, metavar="WHEN",
+                   help="time of day: HH:MM or YYYY-MM-DDTHH:MM[+HH:MM]; the sun's position "
+                        "follows from --latitude/--longitude")
+    g.add_argument("--light-from", default=None, metavar="OTHER",
+                   help="copy the sky and sun of another scene XML (or lights.json:KEY)")
+    s = p.add_argument_group("sun position from --time")
+    s.add_argument("--date", default=None, help="day for a bare HH:MM --time (default 2024-06-21)")
+    s.add_argument("--utc-offset", type=float, default=None,
+                   help="hours ahead of UTC when --time has no zone (default 2, CEST)")
+    s.add_argument("--latitude", type=float, default=None, help="degrees north (default 49.01, Karlsruhe)")
+    s.add_argument("--longitude", type=float, default=None, help="degrees east (default 8.40)")
+    s.add_argument("--north", type=float, default=90.0,
+                   help="world azimuth of geographic north (default 90: +x east, +y north)")
+    o = p.add_argument_group("light levels (override any mode)")
+    o.add_argument("--sun-irradiance", type=_floats, default=None, metavar="R,G,B",
+                   help="sun irradiance (default: the scene's)")
+    o.add_argument("--sky-radiance", type=_floats, default=None, metavar="R,G,B",
+                   help="replace the sky by a constant one of this radiance")
+    o.add_argument("--sky-scale", type=float, default=None, help="multiply the sky by this")
+    sequence.add_render_options(p)
+    p.set_defaults(run=run)
+
+
+def run(args):
+    doc = SceneDoc.load(args.scene)
+    base = lighting_edit.lighting_of_doc(doc)
+    if base is not None:
+        print("[relight] scene lighting: %s" % base.describe())
+    lighting = relight.new_lighting(
+        base, elevation=args.sun_elevation, azimuth=args.sun_azimuth, time=args.time,
+        date=args.date, utc_offset=args.utc_offset, latitude=args.latitude,
+        longitude=args.longitude, north=args.north, light_from=args.light_from,
+        sun_irradiance=args.sun_irradiance, sky_radiance=args.sky_radiance,
+        sky_scale=args.sky_scale)
+    print("[relight] new lighting:   %s" % lighting.describe())
+    edited = relight.relight_doc(doc, lighting)
+    sequence.apply_integrator_options(edited, args)
+    out_dir = sequence.output_dir(args, "relight")
+    scene, _ = sequence.write_and_load(edited, doc, out_dir, "relight")
+    frames = FrameSet(args.scene, scene, args.frames)
+    result = sequence.render_frames(scene, frames, out_dir, args.spp, exposure=args.exposure,
+                                    tag="relight")
+    print("[relight] %d frame(s) in %.1f s; results in %s"
+          % (len(frames.frames), result["seconds"], out_dir))
+    return 0
