@@ -1,0 +1,764 @@
+"""``mi-invrgbl import``: a recorded (or synthetic) drive -> an editable scene.
+
+Reads a KITTI raw drive or a KITTI odometry layout (the synthetic street),
+and writes the layout of ``docs/scene_format.md``: ``scene.xml``,
+``frames.json``, ``background.ply``, ``object_<track>.ply`` and
+``observations/``. Steps (each timed):
+
+read
+    The drive (:mod:`mi_invrgbl.io.kitti`), the selected frames' sweeps and
+    images (downscaled with ``image_scale``, intrinsics scaled to match).
+    A frame whose sweep is empty is skipped with a warning; sweeps with
+    NaN/inf points lose those points with a warning (both in
+    :mod:`mi_invrgbl.io.velodyne`).
+odometry
+    Given poses (GPS/IMU ``oxts`` or ``poses/XX.txt``) are used whenever
+    present; otherwise KISS-ICP LiDAR odometry. ``check_odometry`` runs
+    odometry on a drive that has poses and reports the trajectory error.
+    The world frame is the first imported frame's LiDAR frame.
+accumulate
+    Every sweep in the world frame; its range image (``azimuth_steps`` wide,
+    rows = beams) for ``observations/lidar_NNNN.exr``; points inside a
+    dynamic object's box (in the frames it is labelled or interpolated)
+    go to the object, in its own frame; the rest within
+    [``min_range``, ``max_range``] to the background.
+normals
+    Background: voxel dedupe (``voxel``), random subsample to ``max_points``
+    (seeded), k-NN (OpenCV FLANN), local PCA -> normal (oriented towards the
+    sensors that saw the voxel), tangent frame, scales from neighbour
+    spacing (tangent 0.5 x mean k-NN distance, normal 0.1 x that), LiDAR
+    albedo from intensity corrected for range and incidence angle
+    (:func:`mi_invrgbl.io.init_gaussians.lidar_albedo`).
+objects
+    Per dynamic object ``object_points`` Gaussians in its box (object frame):
+    its LiDAR points when there are enough, topped up with samples on the
+    box's sides and top.
+colours
+    Albedo from the camera images: each Gaussian's centre (objects at their
+    per-frame pose) projected into every frame, z-buffered against all
+    centres, averaged in linear RGB (weights 1/depth); never seen -> 0.5.
+write
+    Everything into a temporary sibling folder, a ``mi.load_file`` check of
+    the scene, then one rename: a folder under the output name is complete.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import json
+import os
+from pathlib import Path
+import shutil
+import tempfile
+import time
+import warnings
+
+import numpy as np
+
+from ..errors import UserError
+from . import init_gaussians as ig
+from .objects import ObjectTrack, tracks_to_objects, in_box, box_surface_samples
+
+#: sweeps with fewer points are skipped (with a warning)
+MIN_SCAN_POINTS = 10
+
+
+@dataclass
+class ImportOptions:
+    frames: str | None = None          # "A:B[:S]" slice of the drive's frames
+    max_points: int = 800_000
+    voxel: float = 0.05                # metres
+    azimuth_steps: int = 1024
+    image_scale: float = 1.0
+    seed: int = 0
+    dynamic: str = "moving"            # moving | all | none
+    knn: int = 10
+    opacity: float = 0.7
+    roughness: float = 0.5
+    min_range: float = 1.0             # metres; background accumulation only
+    max_range: float = 80.0
+    object_points: int = 5000
+    check_odometry: bool = False
+    intensity: str = "auto"            # auto | raw | reflectivity
+    reference_range: float | None = None   # raw intensity: range at which white reads 1
+    beams: int | None = None
+    sky_order: int = 2
+    sun_irradiance: float = 0.0
+    overwrite: bool = False
+    verify: bool = True
+
+    def validate(self) -> "ImportOptions":
+        if self.max_points < 100:
+            raise UserError(f"--max-points must be at least 100 (got {self.max_points})")
+        if not self.voxel > 0:
+            raise UserError(f"--voxel must be > 0 (got {self.voxel})")
+        if self.azimuth_steps < 8:
+            raise UserError(f"--azimuth-steps must be at least 8 (got {self.azimuth_steps})")
+        if not 0 < self.image_scale <= 1:
+            raise UserError(f"--image-scale must lie in (0, 1] (got {self.image_scale})")
+        if self.dynamic not in ("moving", "all", "none"):
+            raise UserError(f"--dynamic must be moving, all or none (got {self.dynamic})")
+        if self.intensity not in ("auto", "raw", "reflectivity"):
+            raise UserError(f"--intensity must be auto, raw or reflectivity (got {self.intensity})")
+        if not 0 < self.opacity < 1:
+            raise UserError(f"--opacity must lie in (0, 1) (got {self.opacity})")
+        if self.knn < 3:
+            raise UserError(f"--knn must be at least 3 (got {self.knn})")
+        if self.object_points < 10:
+            raise UserError(f"--object-points must be at least 10 (got {self.object_points})")
+        if not 0 <= self.min_range < self.max_range:
+            raise UserError("--min-range must be >= 0 and below --max-range")
+        if self.sky_order not in (0, 1, 2, 3):
+            raise UserError(f"--sky-order must be 0..3 (got {self.sky_order})")
+        return self
+
+
+@dataclass
+class ImportReport:
+    out_dir: Path
+    scene: Path
+    times: dict = field(default_factory=dict)
+    counts: dict = field(default_factory=dict)
+    odometry: dict = field(default_factory=dict)
+    objects: list = field(default_factory=list)   # per track: decision summary
+
+
+class _Steps:
+    def __init__(self, log):
+        self.log = log
+        self.times = {}
+
+    def run(self, name, fn, *args, **kwargs):
+        t = time.perf_counter()
+        out = fn(*args, **kwargs)
+        dt = time.perf_counter() - t
+        self.times[name] = self.times.get(name, 0.0) + dt
+        self.log("[import] %-12s %7.2f s" % (name, dt))
+        return out
+
+
+# ----------------------------------------------------------------------------
+# Source detection
+# ----------------------------------------------------------------------------
+
+@dataclass
+class Source:
+    drive: object                  # kitti.Drive
+    kind: str                      # 'raw' or 'odometry'
+    labels: Path | None
+    gt_dir: Path | None
+    synthetic: dict | None         # gt/trajectory.json when present
+
+
+def open_source(data) -> Source:
+    """Detect the layout of ``data`` and read it (no sweeps or images yet)."""
+    from . import kitti
+
+    path = Path(data)
+    if not path.exists():
+        raise UserError(f"{path}: input folder not found")
+    if not path.is_dir():
+        raise UserError(f"{path}: not a folder (expected a KITTI raw drive or a KITTI "
+                        "odometry root with sequences/)")
+    is_odometry = ((path / "sequences").is_dir() or (path / "calib.txt").is_file()
+                   or (path / "velodyne").is_dir())
+    if is_odometry:
+        drive = kitti.read_kitti_odometry(path)
+        root = drive.root.parent.parent
+        labels = root / "label_02" / ("%04d.txt" % int(drive.root.name)) \
+            if drive.root.name.isdigit() else None
+        if labels is not None and not labels.is_file():
+            labels = None
+        gt = root / "gt"
+        synthetic = None
+        if (gt / "trajectory.json").is_file():
+            try:
+                synthetic = json.loads((gt / "trajectory.json").read_text())
+            except json.JSONDecodeError as exc:
+                raise UserError(f"{gt / 'trajectory.json'}: not valid JSON ({exc})") from None
+        return Source(drive, "odometry", labels, gt if gt.is_dir() else None, synthetic)
+    drive = kitti.read_kitti_raw(path)
+    return Source(drive, "raw", None, None, None)
+
+
+def _parse_slice(text: str | None, n: int, what="--frames") -> list:
+    if not text:
+        return list(range(n))
+    try:
+        parts = [int(p) if p.strip() else None for p in text.split(":")]
+        if len(parts) == 1:
+            sl = slice(parts[0], parts[0] + 1)
+        elif len(parts) in (2, 3):
+            sl = slice(*parts)
+        else:
+            raise ValueError
+    except ValueError:
+        raise UserError(f"{what} '{text}': expected A:B or A:B:STEP (frame positions)") from None
+    picked = list(range(n))[sl]
+    if not picked:
+        raise UserError(f"{what} '{text}' selects no frame of the {n} available")
+    return picked
+
+
+def _read_image_uint8(path, size):
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise UserError(f"{path}: not a readable image")
+    if (img.shape[1], img.shape[0]) != tuple(size):
+        img = cv2.resize(img, tuple(size), interpolation=cv2.INTER_AREA)
+    return np.ascontiguousarray(img[:, :, ::-1])     # RGB uint8
+
+
+def _remove_ground(points, clearance=0.3):
+    """Drop points less than ``clearance`` above the road (the 5th height
+    percentile of points 3-20 m away): lets ICP see motion along a corridor."""
+    r = np.hypot(points[:, 0], points[:, 1])
+    near = (r > 3) & (r < 20)
+    if near.sum() < 100:
+        return points
+    ground = np.percentile(points[near, 2], 5)
+    return points[points[:, 2] > ground + clearance]
+
+
+# ----------------------------------------------------------------------------
+# The import
+# ----------------------------------------------------------------------------
+
+def _out_paths(out_xml, overwrite):
+    out_xml = Path(out_xml).absolute()
+    if out_xml.suffix.lower() != ".xml":
+        raise UserError(f"{out_xml}: the output must be a scene file DIR/scene.xml")
+    out_dir = out_xml.parent
+    if out_dir.exists() and not overwrite:
+        if out_dir.is_dir() and not any(out_dir.iterdir()):
+            pass
+        else:
+            raise UserError(f"{out_dir}: output folder already exists; choose a new one "
+                            "or pass --overwrite")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise UserError(f"{out_dir}: exists and is not a folder")
+    parent = out_dir.parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"{parent}: cannot create the output's parent ({exc.strerror})") from None
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise UserError(f"{parent}: cannot write here (permission denied)")
+    return out_xml, out_dir, parent
+
+
+def import_scene(data, out_xml, options: ImportOptions | None = None, log=print) -> ImportReport:
+    """Run the whole import (see the module docstring); returns the report."""
+    opts = (options or ImportOptions()).validate()
+    out_xml, out_dir, parent = _out_paths(out_xml, opts.overwrite)
+    steps = _Steps(log)
+    t_total = time.perf_counter()
+
+    src, state = steps.run("read", _read, data, opts, log)
+    steps.run("odometry", _odometry, src, state, opts, log)
+    steps.run("accumulate", _accumulate, src, state, opts, log)
+    steps.run("normals", _background, state, opts, log)
+    steps.run("objects", _objects, state, opts, log)
+    steps.run("colours", _colours, state, opts, log)
+
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=".%s.partial-" % out_dir.name, dir=parent))
+    except OSError as exc:
+        raise UserError(f"{parent}: cannot write here ({exc.strerror})") from None
+    try:
+        frames = steps.run("write", _write, src, state, opts, tmp, out_xml.name, data)
+        if opts.verify:
+            steps.run("verify", _verify, tmp / out_xml.name)
+        if out_dir.exists():
+            old = Path(tempfile.mkdtemp(prefix=".%s.old-" % out_dir.name, dir=parent))
+            os.rename(out_dir, old / "x")
+            os.rename(tmp, out_dir)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.rename(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    steps.times["total"] = time.perf_counter() - t_total
+    report = ImportReport(out_dir, out_xml, steps.times, state["counts"], state["odometry"],
+                          state["object_report"])
+    report.counts["frames"] = len(frames)
+    return report
+
+
+# -- read ----------------------------------------------------------------------
+
+def _read(data, opts, log):
+    src = open_source(data)
+    drive = src.drive
+    positions = _parse_slice(opts.frames, len(drive))
+    W0, H0 = drive.image_size
+    W, H = max(1, int(round(W0 * opts.image_scale))), max(1, int(round(H0 * opts.image_scale)))
+    sx, sy = W / W0, H / H0
+    K = drive.K.copy()
+    K[0, 0] *= sx
+    K[1, 1] *= sy
+    K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+    K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+    if abs(K[0, 0] - K[1, 1]) > 5e-3 * K[0, 0]:
+        warnings.warn(f"{drive.calib_files[0]}: fx = {K[0, 0]:.2f} and fy = {K[1, 1]:.2f} "
+                      "differ; Mitsuba's perspective camera has square pixels, fy is ignored",
+                      UserWarning, stacklevel=2)
+    kept, scans, images, skipped = [], [], [], []
+    for p in positions:
+        pts, inten = drive.load_scan(p)
+        if pts.shape[0] < MIN_SCAN_POINTS:
+            warnings.warn(f"{drive.scan_paths[p]}: {pts.shape[0]} LiDAR points; frame "
+                          f"{drive.frames[p]} skipped", UserWarning, stacklevel=2)
+            skipped.append(int(drive.frames[p]))
+            continue
+        kept.append(p)
+        scans.append((pts, inten))
+        images.append(_read_image_uint8(drive.image_paths[p], (W, H)))
+    if not kept:
+        raise UserError(f"{drive.root}: no frame with a usable LiDAR sweep")
+    log("[import] %s (%s layout): %d frames%s, image %dx%d -> %dx%d"
+        % (drive.root, src.kind, len(kept),
+           " (%d skipped)" % len(skipped) if skipped else "", W0, H0, W, H))
+    state = {"positions": kept, "scans": scans, "images": images, "K": K, "size": (W, H),
+             "skipped": skipped, "counts": {"skipped_frames": len(skipped)},
+             "odometry": {}, "object_report": []}
+    return src, state
+
+
+# -- odometry --------------------------------------------------------------------
+
+def _odometry(src, state, opts, log):
+    from . import odometry
+
+    drive = src.drive
+    kept = state["positions"]
+    estimated = None
+    if drive.poses is None or opts.check_odometry:
+        t = time.perf_counter()
+        estimated = odometry.lidar_odometry([s[0] for s in state["scans"]])
+        state["odometry"]["kiss_icp_s"] = time.perf_counter() - t
+    if drive.poses is not None:
+        P = drive.poses[kept]
+        poses = np.linalg.inv(P[0]) @ P
+        source = drive.pose_source
+        if estimated is not None:
+            err = odometry.trajectory_error(estimated, poses)
+            t = time.perf_counter()
+            est_ng = odometry.lidar_odometry([_remove_ground(s[0]) for s in state["scans"]])
+            err_ng = odometry.trajectory_error(est_ng, poses)
+            state["odometry"].update({
+                "ate_m": err.ate_m, "drift_percent": err.drift_percent,
+                "final_rotation_deg": err.final_rotation_deg,
+                "path_length_m": err.path_length_m,
+                "ate_m_ground_removed": err_ng.ate_m,
+                "drift_percent_ground_removed": err_ng.drift_percent,
+                "final_rotation_deg_ground_removed": err_ng.final_rotation_deg,
+                "kiss_icp_ground_removed_s": time.perf_counter() - t})
+            log("[import] odometry check vs %s: %s" % (source, err))
+            log("[import] odometry check, ground points dropped: %s" % err_ng)
+    else:
+        poses = estimated
+        source = "odometry"
+        length = float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
+        log("[import] poses by LiDAR odometry: %.1f m travelled over %d frames"
+            % (length, len(poses)))
+    state["poses"] = poses
+    state["pose_source"] = source
+    T_velo_to_cam2 = drive.T_velo_to_cam2
+    state["cam_poses"] = poses @ np.linalg.inv(T_velo_to_cam2)
+    # Objects from tracking labels (world = first imported LiDAR frame).
+    objects = []
+    if src.labels is not None:
+        from . import kitti
+        world_from_cam0 = {int(drive.frames[p]): poses[k] @ np.linalg.inv(drive.T_velo_to_cam)
+                           for k, p in enumerate(kept)}
+        # Labels of frames outside the import are irrelevant: keep them readable.
+        all_frames = dict(world_from_cam0)
+        for f in drive.frames:
+            all_frames.setdefault(int(f), np.eye(4))
+        tracks = kitti.read_tracking_labels(src.labels, world_from_cam=_LenientPoses(all_frames))
+        objects = tracks_to_objects(tracks, [int(drive.frames[p]) for p in kept], opts.dynamic)
+    state["objects"] = objects
+    for o in objects:
+        decision = "dynamic node" if o.dynamic else "background"
+        log("[import] track %d (%s): moves %.2f m over its labels -> %s -> %s"
+            % (o.track_id, o.kind, o.displacement_m, "moving" if o.moving else "static",
+               decision))
+        state["object_report"].append({"track_id": o.track_id, "kind": o.kind,
+                                       "displacement_m": o.displacement_m,
+                                       "moving": o.moving, "dynamic": o.dynamic,
+                                       "labelled_frames": int(o.labelled.sum())})
+
+
+class _LenientPoses(dict):
+    """A frame -> pose dict that also answers for frames outside the drive
+    (labels of frames that were not imported are read but never used)."""
+
+    def __contains__(self, key):
+        return True
+
+    def __missing__(self, key):
+        return np.eye(4)
+
+
+# -- accumulate ----------------------------------------------------------------------
+
+def _lidar_table(src, opts):
+    syn = src.synthetic
+    if syn and isinstance(syn.get("lidar"), dict):
+        li = syn["lidar"]
+        beams = int(opts.beams or li.get("beams", 64))
+        top, bottom = li.get("elevation_deg", [2.0, -24.9])
+        return beams, np.radians(np.linspace(float(top), float(bottom), beams))
+    return int(opts.beams or 64), None
+
+
+def _intensity_kind(src, opts):
+    if opts.intensity != "auto":
+        kind = opts.intensity
+    elif src.synthetic is not None:
+        kind = "raw"
+    else:
+        kind = "reflectivity"      # KITTI's HDL-64 (raw and odometry layouts)
+    ref = opts.reference_range
+    if ref is None:
+        ref = 2.0
+        li = (src.synthetic or {}).get("lidar") or {}
+        if "intensity_scale" in li:
+            ref = float(np.sqrt(float(li["intensity_scale"]) * float(li.get("power", 1.0)) / np.pi))
+    return kind, ref
+
+
+def _accumulate(src, state, opts, log):
+    from .range_image import range_image
+
+    beams, table = _lidar_table(src, opts)
+    state["intensity"] = _intensity_kind(src, opts)
+    W = opts.azimuth_steps
+    poses = state["poses"]
+    dyn = [o for o in state["objects"] if o.dynamic]
+    bg_pts, bg_int, bg_rng, bg_frame = [], [], [], []
+    rimgs, methods, tables, world_points = [], [], [], []
+    for i, (pts, inten) in enumerate(state["scans"]):
+        R, t = poses[i][:3, :3], poses[i][:3, 3]
+        world = (pts.astype(np.float64) @ R.T + t)
+        world_points.append(np.hstack([world, inten[:, None]]).astype(np.float32))
+        ri = range_image(pts, inten, width=W, n_beams=beams, beam_elevations=table)
+        rimgs.append(ri)
+        methods.append(ri.method)
+        tables.append(ri.elevations)
+        rng = np.linalg.norm(pts.astype(np.float64), axis=1)
+        keep = (rng >= opts.min_range) & (rng <= opts.max_range)
+        for o in dyn:
+            if not o.active(i):
+                continue
+            inv = np.linalg.inv(o.poses[i])
+            p_obj = world @ inv[:3, :3].T + inv[:3, 3]
+            inside = in_box(p_obj, o.half_extent) & (rng >= opts.min_range)
+            if inside.any():
+                sensor_obj = inv[:3, :3] @ t + inv[:3, 3]
+                view = sensor_obj - p_obj[inside]
+                o.points.append(p_obj[inside])
+                o.intensity.append(inten[inside])
+                o.distance.append(rng[inside])
+                o.view.append(view / np.linalg.norm(view, axis=1, keepdims=True))
+            keep &= ~inside
+        bg_pts.append(world[keep].astype(np.float32))
+        bg_int.append(inten[keep])
+        bg_rng.append(rng[keep].astype(np.float32))
+        bg_frame.append(np.full(int(keep.sum()), i, np.int32))
+
+    if table is None:
+        good = [e for e, m in zip(tables, methods) if m == "scan_order"]
+        table = np.median(np.stack(good if good else tables), axis=0)
+        redo = [i for i, m in enumerate(methods) if m != "scan_order"]
+        for i in redo:
+            pts, inten = state["scans"][i]
+            rimgs[i] = range_image(pts, inten, width=W, n_beams=beams, beam_elevations=table)
+        if redo:
+            log("[import] %d of %d sweeps lost their firing order; beams assigned by "
+                "elevation with the drive's median beam table" % (len(redo), len(tables)))
+    state["lidar_table"] = np.asarray(table)
+    state["beams"] = beams
+    state["range_images"] = rimgs
+    state["world_points"] = world_points
+    state["bg"] = {"points": np.concatenate(bg_pts), "intensity": np.concatenate(bg_int),
+                   "range": np.concatenate(bg_rng), "frame": np.concatenate(bg_frame)}
+    n_acc = len(state["bg"]["points"])
+    state["counts"]["points_accumulated"] = n_acc
+    state["counts"]["points_total"] = int(sum(len(w) for w in world_points))
+    for o in dyn:
+        state["counts"]["points_" + o.name] = int(sum(len(p) for p in o.points))
+    log("[import] %d background points from %d sweeps (%d total; %d in moving objects)"
+        % (n_acc, len(world_points), state["counts"]["points_total"],
+           sum(sum(len(p) for p in o.points) for o in dyn)))
+
+
+# -- background Gaussians ---------------------------------------------------------------
+
+def _background(state, opts, log):
+    bg = state["bg"]
+    P = bg["points"]
+    if P.shape[0] < opts.knn + 1:
+        raise UserError(f"only {P.shape[0]} LiDAR points within {opts.min_range}-"
+                        f"{opts.max_range} m of the sensor: nothing to build a scene from")
+    kind, ref = state["intensity"]
+    origins = state["poses"][:, :3, 3][bg["frame"]]
+    view = origins - P.astype(np.float64)
+    view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-9)
+
+    first, inverse = ig.voxel_dedupe(P, opts.voxel)
+    nvox = first.size
+    rng = np.random.default_rng(opts.seed)
+    if nvox > opts.max_points:
+        sel = np.sort(rng.choice(nvox, opts.max_points, replace=False))
+    else:
+        sel = np.arange(nvox)
+    slot = np.full(nvox, -1, np.int64)
+    slot[sel] = np.arange(sel.size)
+    pslot = slot[inverse]                         # per point: its Gaussian or -1
+    used = pslot >= 0
+    n = sel.size
+    centres = ig.group_mean(P[used], pslot[used], n)
+    vmean = ig.group_mean(view[used], pslot[used], n)
+
+    idx, dist = ig.knn(centres, opts.knn)
+    normals, tangents, eig = ig.pca_frames(centres, idx)
+    normals = ig.orient_towards(normals, vmean)
+    quats = ig.frames_to_quaternions(tangents, normals)
+    scales = ig.tangent_scales(dist, smallest=0.2 * opts.voxel, largest=0.5)
+
+    cos = np.abs(np.sum(normals[pslot[used]] * view[used], axis=1))
+    rho_pt = ig.lidar_albedo(bg["intensity"][used], bg["range"][used], cos, kind, ref)
+    rho = ig.group_mean(rho_pt, pslot[used], n)
+
+    state["background"] = {"centers": centres.astype(np.float32), "scales": scales,
+                           "quaternions": quats.astype(np.float32),
+                           "normals": normals.astype(np.float32),
+                           "lidar_albedo": rho.astype(np.float32)}
+    state["counts"].update({"voxels": int(nvox), "background_gaussians": int(n)})
+    log("[import] %d voxels of %.3f m -> %d background Gaussians (max %d); LiDAR "
+        "intensity '%s'%s" % (nvox, opts.voxel, n, opts.max_points, kind,
+                             " (white at %.2f m reads 1)" % ref if kind == "raw" else ""))
+
+
+# -- objects ----------------------------------------------------------------------------
+
+def _objects(state, opts, log):
+    kind, ref = state["intensity"]
+    rng = np.random.default_rng([opts.seed, 1])
+    clouds = {}
+    for o in state["objects"]:
+        if not o.dynamic:
+            continue
+        m = opts.object_points
+        if o.points:
+            P = np.concatenate(o.points)
+            inten = np.concatenate(o.intensity)
+            dist = np.concatenate(o.distance)
+            view = np.concatenate(o.view)
+        else:
+            P = np.zeros((0, 3))
+            inten = dist = np.zeros(0)
+            view = np.zeros((0, 3))
+        lidar_pts = np.zeros((0, 3))
+        lidar_n = np.zeros((0, 3))
+        lidar_t = np.zeros((0, 3))
+        lidar_rho = np.zeros(0)
+        if P.shape[0] >= opts.knn + 1:
+            first, inverse = ig.voxel_dedupe(P, opts.voxel)
+            nv = first.size
+            centres = ig.group_mean(P, inverse, nv)
+            vmean = ig.group_mean(view, inverse, nv)
+            take = np.sort(rng.choice(nv, m, replace=False)) if nv > m else np.arange(nv)
+            slot = np.full(nv, -1, np.int64)
+            slot[take] = np.arange(take.size)
+            if take.size >= opts.knn + 1:
+                idx, _ = ig.knn(centres[take], opts.knn)
+                nrm, tan, _ = ig.pca_frames(centres[take], idx)
+                nrm = ig.orient_towards(nrm, vmean[take])
+                ps = slot[inverse]
+                u = ps >= 0
+                cos = np.abs(np.sum(nrm[ps[u]] * view[u], axis=1))
+                lidar_rho = ig.group_mean(ig.lidar_albedo(inten[u], dist[u], cos, kind, ref),
+                                          ps[u], take.size)
+                lidar_pts, lidar_n, lidar_t = centres[take], nrm, tan
+        n_fill = m - lidar_pts.shape[0]
+        fill_pts, fill_n = box_surface_samples(o.half_extent, n_fill, rng)
+        helper = np.where(np.abs(fill_n[:, 2:3]) > 0.5, [[1.0, 0, 0]], [[0, 0, 1.0]])
+        fill_t = np.cross(fill_n, helper)
+        pts = np.concatenate([lidar_pts, fill_pts])
+        normals = np.concatenate([lidar_n, fill_n])
+        tangents = np.concatenate([lidar_t, fill_t])
+        fill_rho = np.median(lidar_rho) if lidar_rho.size else 0.5
+        rho = np.concatenate([lidar_rho, np.full(n_fill, fill_rho)])
+        _, dist_nn = ig.knn(pts, min(opts.knn, len(pts)))
+        scales = ig.tangent_scales(dist_nn, smallest=0.2 * opts.voxel, largest=0.3)
+        clouds[o.name] = {"centers": pts.astype(np.float32), "scales": scales,
+                          "quaternions": ig.frames_to_quaternions(tangents, normals).astype(np.float32),
+                          "normals": normals.astype(np.float32),
+                          "lidar_albedo": np.clip(rho, 0, 1).astype(np.float32),
+                          "from_lidar": int(lidar_pts.shape[0])}
+        log("[import] %s (%s, %.1fx%.1fx%.1f m): %d Gaussians, %d from LiDAR points, "
+            "%d on the box surface" % (o.name, o.kind, *o.size_hwl[::-1], m,
+                                       lidar_pts.shape[0], n_fill))
+        for r in state["object_report"]:
+            if r["track_id"] == o.track_id:
+                r["gaussians_from_lidar"] = int(lidar_pts.shape[0])
+    state["object_clouds"] = clouds
+    state["counts"]["objects"] = len(clouds)
+
+
+# -- colours -----------------------------------------------------------------------------
+
+def _colours(state, opts, log):
+    from .kitti import srgb_to_linear
+
+    K = state["K"]
+    W, H = state["size"]
+    block = max(1, int(round(W / 320)))
+    bg = state["background"]["centers"]
+    acc_bg = ig.ColourAccumulator(len(bg))
+    objs = [o for o in state["objects"] if o.name in state["object_clouds"]]
+    acc_obj = {o.name: ig.ColourAccumulator(len(state["object_clouds"][o.name]["centers"]))
+               for o in objs}
+    for i, cam in enumerate(state["cam_poses"]):
+        w2c = np.linalg.inv(cam)
+        clouds = [("", bg)]
+        for o in objs:
+            if o.active(i):
+                c = state["object_clouds"][o.name]["centers"]
+                T = o.poses[i]
+                clouds.append((o.name, c @ T[:3, :3].T + T[:3, 3]))
+        pts = np.concatenate([c for _, c in clouds])
+        uv, z, ok = ig.project(pts, w2c, K, (W, H))
+        vis = ig.ColourAccumulator.visible(uv, z, ok, (W, H), block)
+        image = srgb_to_linear(state["images"][i].astype(np.float32) / 255.0)
+        start = 0
+        for name, c in clouds:
+            sl = slice(start, start + len(c))
+            acc = acc_bg if name == "" else acc_obj[name]
+            acc.add(np.arange(len(c)), uv[sl], z[sl], vis[sl], image)
+            start += len(c)
+    state["background"]["albedo"] = acc_bg.mean(0.5)
+    seen = float(acc_bg.seen.mean()) if len(bg) else 0.0
+    state["counts"]["background_coloured_fraction"] = seen
+    for o in objs:
+        state["object_clouds"][o.name]["albedo"] = acc_obj[o.name].mean(0.5)
+    log("[import] %.1f%% of the background Gaussians seen by a camera (others grey 0.5)"
+        % (100 * seen))
+
+
+# -- write -----------------------------------------------------------------------------
+
+def _cloud(d, opts, source):
+    from ..plugins.gaussian_ply import GaussianCloud
+
+    n = len(d["centers"])
+    return GaussianCloud(
+        centers=d["centers"], scales=d["scales"], quaternions=d["quaternions"],
+        opacities=np.full(n, opts.opacity, np.float32), normals=d["normals"],
+        albedo=d["albedo"], roughness=np.full(n, opts.roughness, np.float32),
+        lidar_albedo=d["lidar_albedo"], sun_visibility=np.ones(n, np.float32),
+        source=source).validate()
+
+
+def _write(src, state, opts, tmp: Path, scene_name: str, data):
+    import cv2
+    from ..plugins.gaussian_ply import write_ply
+    from ..scene_graph import (Frames, FrameRecord, ObjectRecord, CameraInfo, LidarInfo)
+    from .images import write_exr
+    from .scene_writer import scene_xml
+
+    drive = src.drive
+    obs = tmp / "observations"
+    obs.mkdir()
+    kind, _ = state["intensity"]
+    K = state["K"]
+    W, H = state["size"]
+    dyn = [o for o in state["objects"] if o.name in state["object_clouds"]]
+
+    write_ply(str(tmp / "background.ply"), _cloud(state["background"], opts, "background"))
+    objects = {}
+    for o in dyn:
+        ply = tmp / f"{o.name}.ply"
+        write_ply(str(ply), _cloud(state["object_clouds"][o.name], opts, o.name))
+        objects[o.name] = ObjectRecord(
+            name=o.name, track_id=o.track_id, kind=o.kind,
+            size_hwl=[float(v) for v in o.size_hwl], moving=bool(o.moving), ply=ply,
+            extra={"labelled_frames": [int(i) for i in np.nonzero(o.labelled)[0]],
+                   "displacement_m": round(float(o.displacement_m), 4),
+                   "gaussians_from_lidar": state["object_clouds"][o.name]["from_lidar"],
+                   "frame": "origin at the box centre, x forward (length), y left, z up"})
+
+    ts = drive.timestamps
+    records = []
+    for i, p in enumerate(state["positions"]):
+        name = "%04d" % i
+        src_img = Path(drive.image_paths[p])
+        img_out = obs / f"image_{name}.png"
+        if src_img.suffix.lower() == ".png" and state["images"][i].shape[:2] == \
+                tuple(drive.image_size[::-1]):
+            shutil.copyfile(src_img, img_out)
+        else:
+            cv2.imwrite(str(img_out), state["images"][i][:, :, ::-1])
+        ri = state["range_images"][i]
+        write_exr(str(obs / f"lidar_{name}.exr"),
+                  np.stack([ri.intensity, ri.range, ri.hit.astype(np.float32)], axis=-1),
+                  ["intensity", "range", "hit"])
+        np.save(obs / f"points_{name}.npy", state["world_points"][i])
+        if ts is not None:
+            time_s = float(ts[p] - ts[state["positions"][0]])
+        else:
+            time_s = 0.1 * (p - state["positions"][0])
+        records.append(FrameRecord(
+            index=i, time=round(time_s, 6), held_out=(i % 5 == 4),
+            camera=f"camera_{name}", lidar=f"lidar_{name}",
+            image=img_out, lidar_scan=obs / f"lidar_{name}.exr",
+            points=obs / f"points_{name}.npy",
+            camera_to_world=state["cam_poses"][i], lidar_to_world=state["poses"][i],
+            objects={o.name: o.poses[i] for o in dyn},
+            extra={"source_frame": int(drive.frames[p])}))
+
+    camera = CameraInfo(W, H, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+    lidar = LidarInfo(state["beams"], opts.azimuth_steps,
+                      [round(float(np.degrees(e)), 6) for e in state["lidar_table"]], kind,
+                      extra={"far_clip": 120.0})
+    extra = {"pose_source": state["pose_source"],
+             "world_frame": "the first imported frame's LiDAR frame (x forward, y left, z up)",
+             "tracks": state["object_report"],
+             "import": {k: v for k, v in vars(opts).items() if k not in ("overwrite", "verify")}}
+    if state["skipped"]:
+        extra["skipped_source_frames"] = state["skipped"]
+    gt = None
+    if src.gt_dir is not None:
+        gt = src.gt_dir.absolute()
+        syn = src.synthetic or {}
+        if "world_from_velo" in syn:
+            first = int(drive.frames[state["positions"][0]])
+            extra["gt_world_from_world"] = np.asarray(syn["world_from_velo"][first]).tolist()
+    frames = Frames(tmp / "frames.json", str(Path(data).absolute()), camera, lidar, objects,
+                    gt, records, extra=extra)
+    frames.save(tmp / "frames.json")
+    comment = ("Imported by mi-invrgbl import from %s (%d frames). Per-frame sensors "
+               "camera_NNNN / lidar_NNNN; dynamic objects at frame 0 (see frames.json and "
+               "mi_invrgbl.scene_graph.set_frame)." % (Path(data).absolute(), len(records)))
+    (tmp / scene_name).write_text(scene_xml(frames, sky_order=opts.sky_order,
+                                            sun_irradiance=opts.sun_irradiance,
+                                            comment=comment))
+    return frames
+
+
+def _verify(scene_path: Path):
+    import mitsuba as mi
+
+    try:
+        scene = mi.load_file(str(scene_path))
+    except Exception as exc:  # noqa: BLE001 - report any load failure as the import's fault
+        raise RuntimeError(f"{scene_path}: the written scene does not load: {exc}") from exc
+    n = len(scene.sensors())
+    del scene
+    return n
