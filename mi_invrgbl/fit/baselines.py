@@ -1,0 +1,127 @@
+"""The nearest-neighbour LiDAR intensity baseline.
+
+A held-out scan's intensity is predicted, beam by beam, as the intensity of
+the closest point among all *training* scans (world frame). This is what a
+LiDAR simulator without any reflectance model achieves from the same data:
+InvRGB+L's intensity RMSE should beat it, most of all where the held-out
+viewpoint sees surfaces at new ranges or angles.
+
+The search uses OpenCV's FLANN ``KDTreeSingleIndex`` (exact for 3-D points):
+about 0.4 s to index 1e6 points and 0.15 s for 65k queries on the 2-core
+development machine.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+#: FLANN's exact single k-d tree (``cv2.flann`` algorithm id 4).
+_KDTREE_SINGLE = 4
+
+
+class NearestNeighbourIntensity:
+    """Intensity of the nearest training point.
+
+    Args:
+        points: ``(N, 4)`` world x, y, z, intensity (or ``(N, 3)`` plus ``intensity``).
+        max_distance: queries farther than this (metres) from every training
+            point get ``fill`` instead (default: no limit).
+        fill: value for such queries; ``None`` = the training median intensity.
+    """
+
+    def __init__(self, points, intensity=None, max_distance: float | None = None, fill=None):
+        import cv2
+        p = np.asarray(points, np.float64)
+        if p.ndim != 2 or p.shape[1] < (3 if intensity is not None else 4):
+            raise ValueError("NearestNeighbourIntensity: points must be (N, 4) x, y, z, intensity")
+        inten = p[:, 3] if intensity is None else np.asarray(intensity, np.float64).ravel()
+        keep = np.isfinite(p[:, :3]).all(axis=1) & np.isfinite(inten)
+        self.xyz = np.ascontiguousarray(p[keep, :3], np.float32)
+        self.intensity = inten[keep].astype(np.float32)
+        if self.xyz.shape[0] == 0:
+            raise ValueError("NearestNeighbourIntensity: no (finite) training points")
+        # Centre before indexing: float32 world coordinates far from the
+        # origin would lose centimetres.
+        self.offset = self.xyz.astype(np.float64).mean(axis=0)
+        self._data = np.ascontiguousarray((p[keep, :3] - self.offset).astype(np.float32))
+        self.index = cv2.flann_Index(self._data, {"algorithm": _KDTREE_SINGLE, "leaf_max_size": 10})
+        self.max_distance = max_distance
+        self.fill = float(np.median(self.intensity)) if fill is None else float(fill)
+
+    def __len__(self):
+        return int(self.xyz.shape[0])
+
+    def query(self, xyz):
+        """``(intensity, distance)`` of the nearest training point per query ``(M, 3)``."""
+        q = np.asarray(xyz, np.float64).reshape(-1, 3)
+        out_i = np.full(q.shape[0], np.nan, np.float32)
+        out_d = np.full(q.shape[0], np.inf, np.float64)
+        ok = np.isfinite(q).all(axis=1)
+        if ok.any():
+            qq = np.ascontiguousarray((q[ok] - self.offset).astype(np.float32))
+            idx, d2 = self.index.knnSearch(qq, 1, params={"checks": -1})
+            idx = idx[:, 0].astype(np.int64)
+            out_i[ok] = self.intensity[idx]
+            out_d[ok] = np.sqrt(np.maximum(d2[:, 0].astype(np.float64), 0.0))
+        if self.max_distance is not None:
+            out_i[out_d > self.max_distance] = self.fill
+        out_i[~ok] = self.fill
+        return out_i, out_d
+
+    def predict(self, xyz) -> np.ndarray:
+        """Predicted intensity per query point ``(M, 3)``."""
+        return self.query(xyz)[0]
+
+    def predict_scan(self, ranges, directions_world, origin, hit=None) -> np.ndarray:
+        """Intensity image of a range image: ``ranges`` (H, W), unit beam
+        directions (H, W, 3) in the world frame and the sensor ``origin``.
+        Pixels without a return (``hit`` 0 or range <= 0) get 0."""
+        r = np.asarray(ranges, np.float64)
+        d = np.asarray(directions_world, np.float64).reshape(r.shape + (3,))
+        h = (r > 0) & np.isfinite(r) if hit is None else (np.asarray(hit) > 0.5) & (r > 0)
+        out = np.zeros(r.shape, np.float32)
+        if h.any():
+            pts = np.asarray(origin, np.float64) + d[h] * r[h][:, None]
+            out[h] = self.predict(pts)
+        return out
+
+
+def load_points(paths, max_points: int | None = None, seed: int = 0) -> np.ndarray:
+    """Concatenate ``points_NNNN.npy`` files ((N, 4) world x, y, z, intensity).
+
+    With ``max_points``, a uniform random subset of that size is kept.
+    Missing files raise ``FileNotFoundError`` naming the file.
+    """
+    chunks = []
+    for p in paths:
+        p = os.fspath(p)
+        if not os.path.isfile(p):
+            raise FileNotFoundError("%s: LiDAR points file not found" % p)
+        a = np.load(p)
+        if a.ndim != 2 or a.shape[1] < 4:
+            raise ValueError("%s: expected an (N, 4) array x, y, z, intensity, got %s" % (p, a.shape))
+        chunks.append(np.asarray(a[:, :4], np.float32))
+    if not chunks:
+        return np.zeros((0, 4), np.float32)
+    pts = np.concatenate(chunks, axis=0)
+    if max_points is not None and pts.shape[0] > max_points:
+        sel = np.random.default_rng(seed).choice(pts.shape[0], int(max_points), replace=False)
+        pts = pts[np.sort(sel)]
+    return pts
+
+
+def from_frames(frames, indices=None, **kwargs) -> NearestNeighbourIntensity:
+    """The baseline built from the training frames' point files of a
+    :class:`mi_invrgbl.scene_graph.Frames` (default: every non-held-out frame
+    that has a ``points`` file)."""
+    if indices is None:
+        indices = frames.train_indices()
+    pos = {f.index: k for k, f in enumerate(frames.frames)}
+    paths = [frames.frames[pos[i]].points for i in indices
+             if i in pos and frames.frames[pos[i]].points is not None]
+    if not paths:
+        raise ValueError("no training frame has a points file")
+    max_points = kwargs.pop("max_points", None)
+    return NearestNeighbourIntensity(load_points(paths, max_points), **kwargs)

@@ -1,0 +1,328 @@
+"""``mi-invrgbl eval`` on a tiny hand-built scene in the documented layout.
+
+The fixture writes DIR/scene.xml, frames.json, Gaussians PLYs (a ground, a
+wall and one moving object), observations rendered from that very scene,
+scene_lidar.xml with a non-default sensor response, and a synthetic ground
+truth (maps from the render's AOVs, a time-B relit render, lights.json and a
+trajectory.json whose world is rotated against the scene's) — so every
+metric must come out perfect.
+"""
+
+import json
+import math
+import os
+
+import numpy as np
+import pytest
+import drjit as dr
+import mitsuba as mi
+
+from mi_invrgbl.plugins.gaussian_ply import GaussianCloud, write_ply
+from mi_invrgbl.io.images import write_exr, write_png
+from mi_invrgbl.scene_graph import Frames, CAMERA_FLIP
+
+W, H = 32, 24
+FX = 20.0
+N_FRAMES = 3
+ELEVATIONS = "-4, -8, -12, -16, -20"
+AZ = 48
+#: Ground truth's world = the scene's, rotated by -90 degrees about z.
+RZ = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])   # scene <- gt
+TIME_B = {"sky_radiance": [0.3, 0.32, 0.4], "sun_irradiance": [2.0, 1.6, 1.1]}
+SUN_B_SCENE = np.array([-0.4, 0.5, 0.77])
+SUN_B_SCENE /= np.linalg.norm(SUN_B_SCENE)
+
+
+def grid_cloud(centers, scale, normal, albedo, roughness, lidar_albedo):
+    n = len(centers)
+    return GaussianCloud(
+        centers=np.asarray(centers, np.float32),
+        scales=np.tile(np.float32(scale), (n, 1)),
+        quaternions=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+        opacities=np.full(n, 0.98, np.float32),
+        normals=np.tile(np.float32(normal), (n, 1)),
+        albedo=np.asarray(albedo, np.float32).reshape(n, 3),
+        roughness=np.asarray(roughness, np.float32).reshape(n),
+        lidar_albedo=np.asarray(lidar_albedo, np.float32).reshape(n),
+        sun_visibility=np.ones(n, np.float32))
+
+
+def background_cloud():
+    xs, ys = np.meshgrid(np.arange(-2, 14.01, 0.5), np.arange(-5, 5.01, 0.5))
+    g = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], 1)
+    stripe = (np.floor(g[:, 0] / 2) % 2 == 0)
+    alb = np.where(stripe[:, None], [0.3, 0.28, 0.25], [0.12, 0.12, 0.13])
+    ground = grid_cloud(g, [0.5, 0.5, 0.05], [0, 0, 1], alb, np.where(stripe, 0.6, 0.8),
+                        np.where(stripe, 0.35, 0.12))
+    ys, zs = np.meshgrid(np.arange(-5, 5.01, 0.5), np.arange(0.25, 4.01, 0.5))
+    wpts = np.stack([np.full(ys.size, 12.0), ys.ravel(), zs.ravel()], 1)
+    walb = np.tile([0.55, 0.45, 0.3], (len(wpts), 1))
+    wall = grid_cloud(wpts, [0.05, 0.5, 0.5], [-1, 0, 0], walb, np.full(len(wpts), 0.4),
+                      np.full(len(wpts), 0.5))
+    return GaussianCloud(*[np.concatenate([getattr(ground, f), getattr(wall, f)])
+                           for f in ("centers", "scales", "quaternions", "opacities", "normals",
+                                     "albedo", "roughness", "lidar_albedo", "sun_visibility")])
+
+
+def object_cloud():
+    a = np.arange(-0.4, 0.41, 0.4)
+    x, y, z = np.meshgrid(a, a, a)
+    c = np.stack([x.ravel(), y.ravel(), z.ravel()], 1)
+    n = len(c)
+    return grid_cloud(c, [0.3, 0.3, 0.3], [0, 0, 1], np.tile([0.6, 0.1, 0.1], (n, 1)),
+                      np.full(n, 0.3), np.full(n, 0.7))
+
+
+def cam_to_world(i):
+    m = np.eye(4)
+    m[:3, :3] = [[0, 0, 1], [-1, 0, 0], [0, -1, 0]]   # dataset camera looking along +x
+    m[:3, 3] = [1.0 * i, 0.0, 1.5]
+    return m
+
+
+def lidar_to_world(i):
+    m = np.eye(4)
+    m[:3, 3] = [1.0 * i, 0.0, 1.7]
+    return m
+
+
+def object_pose(i):
+    m = np.eye(4)
+    m[:3, 3] = [7.0, -1.5 + 1.2 * i, 0.7]
+    return m
+
+
+def mat(m):
+    return " ".join("%.9g" % v for v in np.asarray(m).ravel())
+
+
+def scene_xml(object_frame=0):
+    fov = math.degrees(2 * math.atan(W / (2 * FX)))
+    out = ['<scene version="3.0.0">',
+           '<integrator type="invrgbl"><integer name="samples" value="8"/></integrator>',
+           '<emitter type="shsun" id="sky"><integer name="order" value="1"/>'
+           '<string name="sh" value="1.6 1.8 2.3  0 0 0  0.5 0.5 0.7  0 0 0"/>'
+           '<vector name="sun_direction" x="0.3" y="0.4" z="0.85"/>'
+           '<rgb name="sun_irradiance" value="3.0, 2.8, 2.5"/></emitter>',
+           '<shape type="gaussians" id="background"><string name="filename" value="background.ply"/></shape>',
+           '<shape type="gaussians" id="object_1"><string name="filename" value="object_1.ply"/>'
+           '<transform name="to_world"><matrix value="%s"/></transform></shape>' % mat(object_pose(object_frame))]
+    for i in range(N_FRAMES):
+        out.append('<sensor type="perspective" id="camera_%04d"><float name="fov" value="%.9g"/>'
+                   '<string name="fov_axis" value="x"/>'
+                   '<transform name="to_world"><matrix value="%s"/></transform>'
+                   '<sampler type="independent"><integer name="sample_count" value="1"/></sampler>'
+                   '<film type="hdrfilm"><integer name="width" value="%d"/>'
+                   '<integer name="height" value="%d"/><rfilter type="box"/></film></sensor>'
+                   % (i, fov, mat(cam_to_world(i) @ CAMERA_FLIP), W, H))
+        out.append('<sensor type="lidar" id="lidar_%04d"><string name="elevations" value="%s"/>'
+                   '<float name="far_clip" value="60"/>'
+                   '<transform name="to_world"><matrix value="%s"/></transform>'
+                   '<film type="hdrfilm"><integer name="width" value="%d"/>'
+                   '<integer name="height" value="5"/><rfilter type="box"/></film></sensor>'
+                   % (i, ELEVATIONS, mat(lidar_to_world(i)), AZ))
+    out.append("</scene>")
+    return "\n".join(out)
+
+
+LIDAR_XML = """<scene version="3.0.0">
+    <default name="gain" value="1.2"/>
+    <integrator type="lidar_return">
+        <string name="model" value="pbr"/>
+        <float name="range_exponent" value="0.5"/>
+        <float name="angle_exponent" value="0.8"/>
+        <string name="beam_gains" value="1.0, $gain, 0.9, 1.1, 1.0"/>
+    </integrator>
+</scene>
+"""
+
+
+def frames_json(root, gt_dir):
+    frames = []
+    for i in range(N_FRAMES):
+        frames.append({"index": i, "time": 0.1 * i, "held_out": i == 2,
+                       "camera": "camera_%04d" % i, "lidar": "lidar_%04d" % i,
+                       "image": "observations/image_%04d.png" % i,
+                       "lidar_scan": "observations/lidar_%04d.exr" % i,
+                       "points": "observations/points_%04d.npy" % i,
+                       "camera_to_world": cam_to_world(i).tolist(),
+                       "lidar_to_world": lidar_to_world(i).tolist(),
+                       "objects": {"object_1": object_pose(i).tolist()}})
+    return {"format": "mi-invrgbl-frames/1", "source": str(root),
+            "camera": {"width": W, "height": H, "fx": FX, "fy": FX, "cx": W / 2, "cy": H / 2},
+            "lidar": {"beams": 5, "azimuth_steps": AZ,
+                      "elevations_deg": [float(e) for e in ELEVATIONS.split(",")],
+                      "intensity": "raw"},
+            "objects": {"object_1": {"track_id": 1, "kind": "Car", "size_hwl": [1, 1, 1],
+                                     "moving": True, "ply": "object_1.ply"}},
+            "ground_truth": {"dir": str(gt_dir)},
+            "frames": frames}
+
+
+def aov(img, names, key):
+    idx = [i for i, n in enumerate(names) if n == key or n.startswith(key + ".")]
+    return img[..., idx] if len(idx) > 1 else img[..., idx[0]]
+
+
+@pytest.fixture(scope="module")
+def fit_dir(tmp_path_factory):
+    root = tmp_path_factory.mktemp("evalscene")
+    gt = root / "gt"
+    for d in ("observations", "gt/maps", "gt/time_b"):
+        (root / d).mkdir(parents=True)
+    write_ply(str(root / "background.ply"), background_cloud())
+    write_ply(str(root / "object_1.ply"), object_cloud())
+    (root / "scene.xml").write_text(scene_xml())
+    (root / "scene_lidar.xml").write_text(LIDAR_XML)
+    (root / "frames.json").write_text(json.dumps(frames_json(root, gt), indent=1))
+    lights = {"time_b": {**TIME_B, "sun_direction": (RZ.T @ SUN_B_SCENE).tolist()}}
+    (gt / "lights.json").write_text(json.dumps(lights))
+    (gt / "trajectory.json").write_text(json.dumps(
+        {"world_from_cam": [(np.block([[RZ.T, np.zeros((3, 1))], [np.zeros((1, 3)), 1]])
+                             @ cam_to_world(i)).tolist() for i in range(N_FRAMES)]}))
+
+    lidar_integ = mi.load_string(LIDAR_XML.replace("$gain", "1.2")).integrator()
+    for i in range(N_FRAMES):
+        # Observations independent of set_frame: the object loaded at frame i's pose.
+        (root / "frame.xml").write_text(scene_xml(object_frame=i))
+        scene = mi.load_file(str(root / "frame.xml"))
+        params = mi.traverse(scene)
+        cam = next(s for s in scene.sensors() if s.id() == "camera_%04d" % i)
+        lidar = next(s for s in scene.sensors() if s.id() == "lidar_%04d" % i)
+        img = np.array(mi.render(scene, sensor=cam), np.float32)
+        names = [f.name for f in cam.film().bitmap().struct_()]
+        write_png(str(root / "observations" / ("image_%04d.png" % i)), img[..., :3])
+        scan = np.array(mi.render(scene, sensor=lidar, integrator=lidar_integ), np.float32)
+        write_exr(str(root / "observations" / ("lidar_%04d.exr" % i)), scan[..., :3],
+                  ["intensity", "range", "hit"])
+        dirs = lidar.ray_directions_local() @ lidar_to_world(i)[:3, :3].T
+        hit = scan[..., 2] > 0.5
+        pts = lidar_to_world(i)[:3, 3] + dirs[hit] * scan[..., 1][hit][:, None]
+        np.save(root / "observations" / ("points_%04d.npy" % i),
+                np.column_stack([pts, scan[..., 0][hit]]).astype(np.float32))
+        # ground truth: the render's own AOVs (divided by alpha), gt world rotated
+        alpha = aov(img, names, "alpha")
+        inv = 1.0 / np.maximum(alpha, 1e-6)
+        covered = alpha > 0.5
+        write_exr(str(gt / "maps" / ("%06d_albedo.exr" % i)),
+                  aov(img, names, "albedo") * inv[..., None], ["R", "G", "B"])
+        write_exr(str(gt / "maps" / ("%06d_roughness.exr" % i)),
+                  aov(img, names, "roughness") * inv, ["Y"])
+        write_exr(str(gt / "maps" / ("%06d_lidar_albedo.exr" % i)),
+                  aov(img, names, "lidar_albedo") * inv, ["Y"])
+        n = aov(img, names, "normal")
+        write_exr(str(gt / "maps" / ("%06d_normal.exr" % i)), n @ RZ, ["R", "G", "B"])
+        write_exr(str(gt / "maps" / ("%06d_mesh_id.exr" % i)),
+                  np.where(covered, 0.0, -1.0).astype(np.float32), ["Y"])
+        # time B: constant sky (SH order 0 of an order-1 emitter) + the B sun
+        sh = np.zeros(12, np.float32)
+        sh[:3] = np.array(TIME_B["sky_radiance"]) / 0.28209479177387814
+        params["sky.sh"] = mi.Float(sh)
+        params["sky.sun_direction"] = mi.Vector3f(*[float(v) for v in SUN_B_SCENE])
+        params["sky.sun_irradiance"] = mi.Color3f(*TIME_B["sun_irradiance"])
+        params.update()
+        relit = np.array(mi.render(scene, sensor=cam), np.float32)[..., :3]
+        write_exr(str(gt / "time_b" / ("%06d.exr" % i)), relit, ["R", "G", "B"])
+    (root / "frame.xml").unlink()
+    return root
+
+
+def test_eval_perfect_on_own_renders(fit_dir, capsys):
+    from mi_invrgbl.cli import main
+    out = fit_dir / "m.json"
+    assert main(["eval", str(fit_dir), "-o", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "PSNR" in printed and "mean" in printed
+    res = json.loads(out.read_text())
+    assert [r["index"] for r in res["frames"]] == [2]
+    m = res["mean"]
+    assert m["psnr"] > 45          # only the PNG's 8-bit rounding
+    assert m["ssim"] > 0.99
+    assert m["lidar_intensity_rmse"] < 1e-5
+    assert m["range_error"] < 1e-5
+    assert m["ray_drop_accuracy"] == 1.0
+    assert m["albedo_rmse"] < 1e-4
+    assert m["roughness_mae"] < 1e-4
+    assert m["normal_angle_deg"] < 0.1       # through the RZ world alignment
+    assert m["lidar_albedo_rmse"] < 1e-4
+    assert m["relight_psnr"] > 60            # the time-B sun rotated into the scene's world
+    assert m["gt_coverage"] > 0.99
+    assert "baseline_intensity_rmse" in m and m["baseline_intensity_rmse"] >= 0
+    assert res["lidar_response"].endswith("scene_lidar.xml")
+
+
+def test_eval_frames_and_default_response(fit_dir, tmp_path):
+    import shutil
+    from mi_invrgbl.commands.eval import evaluate
+    # a copy without scene_lidar.xml: the default response mismatches the observations
+    copy = tmp_path / "fit"
+    shutil.copytree(fit_dir, copy, ignore=shutil.ignore_patterns("scene_lidar.xml", "gt"))
+    fj = json.loads((copy / "frames.json").read_text())
+    del fj["ground_truth"]
+    (copy / "frames.json").write_text(json.dumps(fj))
+    res = evaluate(str(copy / "scene.xml"), "0:2", baseline=False, log=lambda *a: None)
+    assert [r["index"] for r in res["frames"]] == [0, 1]
+    assert res["ground_truth"] is None and "albedo_rmse" not in res["mean"]
+    assert res["mean"]["lidar_intensity_rmse"] > 1e-3
+    assert res["mean"]["range_error"] < 1e-5
+    assert res["mean"]["psnr"] > 45           # object placed per frame by set_frame
+
+
+def test_eval_errors(fit_dir, tmp_path, capsys):
+    from mi_invrgbl.cli import main
+    from mi_invrgbl.commands.eval import select_frames
+    assert main(["eval", str(tmp_path / "nope")]) == 2
+    assert "no such fit folder" in capsys.readouterr().err
+    assert main(["eval", str(tmp_path)]) == 2
+    assert "no scene.xml" in capsys.readouterr().err
+    frames = Frames.load(fit_dir)
+    assert select_frames(frames, "all") == [0, 1, 2]
+    assert select_frames(frames, "1,2") == [1, 2]
+    assert select_frames(frames, ":1") == [0]
+    from mi_invrgbl.errors import UserError
+    for bad in ("7", "x:y", "5:9"):
+        with pytest.raises(UserError):
+            select_frames(frames, bad)
+    bad_dir = tmp_path / "bad"
+    bad_dir.mkdir()
+    (bad_dir / "scene.xml").write_text("<scene version='3.0.0'><shape type='nosuch'/></scene>")
+    (bad_dir / "frames.json").write_text((fit_dir / "frames.json").read_text())
+    assert main(["eval", str(bad_dir), "--frames", "all"]) == 2
+    assert "cannot load scene" in capsys.readouterr().err
+
+
+def test_nn_baseline():
+    from mi_invrgbl.fit.baselines import NearestNeighbourIntensity, load_points
+    rng = np.random.default_rng(0)
+    pts = np.column_stack([rng.uniform(-20, 20, (5000, 3)) + [500, -300, 0],
+                           rng.uniform(0, 1, 5000)])
+    nn = NearestNeighbourIntensity(pts)
+    q = pts[:200, :3] + rng.normal(0, 1e-3, (200, 3))
+    np.testing.assert_allclose(nn.predict(q), pts[:200, 3], rtol=1e-6)
+    # exact nearest neighbour against brute force
+    q2 = rng.uniform(-20, 20, (100, 3)) + [500, -300, 0]
+    brute = np.argmin(((q2[:, None] - pts[None, :, :3]) ** 2).sum(-1), axis=1)
+    np.testing.assert_allclose(nn.predict(q2), pts[brute, 3], rtol=1e-6)
+    far = NearestNeighbourIntensity(pts, max_distance=0.5, fill=-1.0)
+    assert far.predict(np.array([[0.0, 0.0, 0.0]]))[0] == -1.0
+    # a range image
+    dirs = np.zeros((2, 3, 3))
+    dirs[..., 0] = 1
+    rng_img = np.array([[1.0, 0, 2], [0, 3, 0]])
+    base = NearestNeighbourIntensity(np.array([[1, 0, 0, 0.2], [2, 0, 0, 0.5], [3, 0, 0, 0.9]]))
+    np.testing.assert_allclose(base.predict_scan(rng_img, dirs, [0, 0, 0]),
+                               [[0.2, 0, 0.5], [0, 0.9, 0]])
+    with pytest.raises(FileNotFoundError):
+        load_points(["/nonexistent/points_0000.npy"])
+
+
+@pytest.mark.slow
+def test_nn_baseline_million_points_fast():
+    import time
+    from mi_invrgbl.fit.baselines import NearestNeighbourIntensity
+    rng = np.random.default_rng(1)
+    pts = np.column_stack([rng.uniform(0, 80, (1_000_000, 3)), rng.uniform(0, 1, 1_000_000)])
+    t = time.perf_counter()
+    nn = NearestNeighbourIntensity(pts)
+    nn.predict(rng.uniform(0, 80, (131072, 3)))
+    assert time.perf_counter() - t < 10
