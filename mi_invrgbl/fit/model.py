@@ -163,7 +163,7 @@ class GaussianModel:
         q = q * dr.rsqrt(dr.maximum(dr.squared_norm(q), 1e-20))
         if pose is not None and node.dynamic:
             rot = pose[:3, :3]
-            c = mi.Matrix3f(rot.astype(np.float32)) @ c + mi.Vector3f(*pose[:3, 3].astype(np.float32))
+            c = mi.Matrix3f(rot.tolist()) @ c + mi.Vector3f(*[float(v) for v in pose[:3, 3]])
             qr = matrix_quaternion_xyzw(rot)
             q = mi.Quaternion4f(*[float(x) for x in qr]) * q
         s = dr.exp(node.vec("log_scale"))
@@ -177,7 +177,7 @@ class GaussianModel:
     def world_normal(self, node: Node, pose=None):
         n = node.vec("normal")
         if pose is not None and node.dynamic:
-            n = mi.Matrix3f(pose[:3, :3].astype(np.float32)) @ n
+            n = mi.Matrix3f(pose[:3, :3].tolist()) @ n
         n = n * dr.rsqrt(dr.maximum(dr.squared_norm(n), 1e-20))
         return _interleave([n.x, n.y, n.z], node.count)
 

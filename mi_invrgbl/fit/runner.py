@@ -132,6 +132,10 @@ class FitContext:
         if not self.train_frames:
             raise UserError("%s: every frame is held out; nothing to train on" % self.frames.path)
         n_beams = self.frames.lidar.beams
+        seen = [o.lidar.intensity[o.lidar.hit] for o in self.train_frames if o.lidar is not None]
+        seen = np.concatenate(seen) if seen else np.zeros(0)
+        seen = seen[seen > 0]
+        self.intensity_scale = float(np.percentile(seen, 95)) if seen.size else 1.0
         self.response = Response(mi.Float(2.0), mi.Float(1.0), dr.ones(mi.Float, max(n_beams, 1)))
         self.times["load"] = time.perf_counter() - t
         self.log("[fit] %s: %d Gaussians in %d node(s) (%s), %d training + %d held-out frames, "
@@ -254,8 +258,8 @@ def load_checkpoint(ctx):
     for name, node in ctx.model.nodes.items():
         node.count = dr.width(node.values["opacity_logit"])
     ctx.params[ctx.sky_key] = mi.Float(data["sky/sh"])
-    ctx.params[ctx.sun_key] = mi.Color3f(*data["sky/sun_irradiance"])
-    ctx.params[ctx.sun_dir_key] = mi.Vector3f(*data["sky/sun_direction"])
+    ctx.params[ctx.sun_key] = mi.Color3f(*[float(v) for v in data["sky/sun_irradiance"]])
+    ctx.params[ctx.sun_dir_key] = mi.Vector3f(*[float(v) for v in data["sky/sun_direction"]])
     ctx.params.update()
     ctx.response = Response(mi.Float(data["response/range_exponent"]),
                             mi.Float(data["response/angle_exponent"]),
@@ -315,14 +319,14 @@ def _loop(ctx, stage_name, stage, start, total, evaluate, opt_getter):
 # ------------------------------------------------------------------ between stages
 def select_lighting(ctx):
     """Sun and SH order from stage-1 colours and the directly seen sky."""
-    from .selection import (choose_sun, fit_sh_orders, hemisphere_candidates, pad_sh,
-                            sun_features)
+    from .selection import (choose_sun_pairs, fit_sh_orders, hemisphere_candidates,
+                            neighbour_pairs, pad_sh, refine_candidates, sun_features)
     from ..plugins.sh import num_coeffs
     cfg = ctx.config
     t = time.perf_counter()
     ctx.model.push(ctx.train_frames[0].poses, stage=1)
     # Gaussians seen in training images, weighted by how much they are seen.
-    weight = {}
+    weight, seen_colour = {}, {}
     sky_dirs, sky_rgb = [], []
     with dr.suspend_grad():
         for f in ctx.train_frames:
@@ -334,10 +338,13 @@ def select_lighting(ctx):
             g = hitlib.eval_gaussian_hits(nodes, f.camera.rays, hl)
             w, t_after = hitlib.blend_weights(g)
             ids, prims, ww = np.array(g.node_ids), np.array(g.prims), np.array(w)
+            pix = f.camera.image.reshape(-1, 3)[np.array(g.ray)]
             for name, sid in ctx.model.shape_ids.items():
                 m = ids == sid
                 acc = weight.setdefault(name, np.zeros(ctx.model.nodes[name].count, np.float64))
                 np.add.at(acc, prims[m], ww[m])
+                col = seen_colour.setdefault(name, np.zeros((ctx.model.nodes[name].count, 3)))
+                np.add.at(col, prims[m], ww[m, None] * pix[m])
             sky = (np.array(t_after) > 0.95) & ~np.array(hl.surface_valid)
             if sky.any():
                 d = np.stack([np.array(f.camera.rays.d[k]) for k in range(3)], 1)[sky]
@@ -352,7 +359,10 @@ def select_lighting(ctx):
         seen = weight.get(name, np.zeros(node.count)) > 0.05
         centers.append(cloud.centers[seen])
         normals.append(cloud.normals[seen])
-        lum.append((cloud.albedo[seen] @ np.array([0.2126, 0.7152, 0.0722])))
+        # Radiance each Gaussian shows in the images (weighted mean of the
+        # pixels it contributes to): what the light did, before any fitting.
+        colour = seen_colour[name][seen] / weight[name][seen][:, None]
+        lum.append(colour @ np.array([0.2126, 0.7152, 0.0722]))
         wts.append(weight[name][seen])
     centers, normals = np.concatenate(centers), np.concatenate(normals)
     lum, wts = np.concatenate(lum), np.concatenate(wts)
@@ -368,9 +378,15 @@ def select_lighting(ctx):
     if cfg.sun == "off":
         sel["sun"] = {"use_sun": False, "forced": True}
     elif centers.shape[0] >= 50:
+        pairs = neighbour_pairs(centers, normals, seed=cfg.seed)
         dirs = hemisphere_candidates(cfg.sun_candidates)
         feats = sun_features(ctx.scene, centers, normals, dirs)
-        sel["sun"] = choose_sun(lum, feats, dirs, np.minimum(wts, 1.0))
+        coarse = choose_sun_pairs(lum, feats, dirs, pairs)
+        fine_dirs = refine_candidates(coarse["direction"])
+        fine_feats = sun_features(ctx.scene, centers, normals, fine_dirs)
+        sel["sun"] = choose_sun_pairs(lum, fine_feats, fine_dirs, pairs)
+        sel["sun"]["coarse_correlation"] = coarse["correlation"]
+        sel["sun"]["median_correlation"] = coarse["median_correlation"]
         if cfg.sun == "on":
             sel["sun"]["use_sun"], sel["sun"]["forced"] = True, True
     else:

@@ -2,10 +2,13 @@
 
 * **Sun.** Directional light shows up as shadows and n.l shading: for a
   candidate sun direction ``l``, the stage-1 colour of the Gaussians should
-  correlate with ``s(l) = v(l) max(0, n.l)`` (``v`` = traced visibility).
-  Candidates cover the upper hemisphere; the best correlation picks the
-  direction, and a sun is used only if that correlation and the fitted
-  sun/sky ratio are clearly above what a sunless (overcast) scene gives.
+  follow ``s(l) = v(l) max(0, n.l)`` (``v`` = traced visibility). Albedo
+  varies far more between surfaces than within one, so the score compares
+  *neighbouring* Gaussians on the same surface (close, similar normals):
+  the difference of their log luminance should correlate with the
+  difference of ``s``. Candidates cover the upper hemisphere and the best
+  one is refined locally; a sun is used only if the correlation and the
+  fitted sun/sky ratio are clearly above what a sunless scene gives.
 * **SH order.** The sky seen directly (pixels with no Gaussian in front) is
   fitted by least squares at orders 0..3 on 80 % of those pixels; the lowest
   order within 2 % of the best error on the other 20 % wins.
@@ -50,6 +53,59 @@ def sun_features(scene, centers, normals, directions):
             vis = np.array(transmittance(scene, o, d, mi.Float(dr.inf), nodes))
             out[:, k] = vis * cos
     return out
+
+
+def neighbour_pairs(centers, normals, radius=0.5, min_cos=0.9, seed=0):
+    """Pairs (i, j) of Gaussians in the same ``radius`` voxel with similar normals."""
+    rng = np.random.default_rng(seed)
+    keys = np.floor(centers / radius).astype(np.int64)
+    keys = keys[:, 0] * 73856093 ^ keys[:, 1] * 19349663 ^ keys[:, 2] * 83492791
+    order = np.lexsort((rng.random(len(keys)), keys))
+    k = keys[order]
+    same = k[1:] == k[:-1]
+    i, j = order[:-1][same], order[1:][same]
+    ok = np.abs(np.sum(normals[i] * normals[j], axis=1)) >= min_cos
+    return i[ok], j[ok]
+
+
+def choose_sun_pairs(luminance, features, directions, pairs, min_corr=0.2, min_ratio=0.15):
+    """Score candidates by the correlation of luminance *differences* between
+    neighbouring Gaussians with differences of ``s`` (albedo cancels)."""
+    i, j = pairs
+    y = np.log(np.maximum(luminance, 1e-4))
+    dy = y[i] - y[j]
+    corrs = []
+    for k in range(features.shape[1]):
+        ds = features[i, k] - features[j, k]
+        den = np.sqrt(np.sum(ds * ds) * np.sum(dy * dy))
+        corrs.append(float(np.sum(ds * dy) / den) if den > 1e-12 else 0.0)
+    k = int(np.argmax(corrs))
+    s = features[:, k]
+    A = np.stack([np.ones_like(s), s], axis=1)
+    b0, b1 = np.linalg.lstsq(A, luminance, rcond=None)[0]
+    ratio = float(b1 / b0) if b0 > 1e-6 else float("inf")
+    return {"direction": directions[k].tolist(), "correlation": corrs[k], "sun_to_sky": ratio,
+            "sky_level": float(max(b0, 1e-3)), "sun_level": float(max(b1, 0.0)),
+            "use_sun": bool(corrs[k] >= min_corr and ratio >= min_ratio),
+            "median_correlation": float(np.median(corrs)), "pairs": int(len(i)), "index": k}
+
+
+def refine_candidates(direction, spread_deg=10.0, count=12):
+    """Directions on a cone around ``direction`` (and itself), above the horizon."""
+    d = np.asarray(direction, np.float64)
+    d /= np.linalg.norm(d)
+    a = np.array([0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    u = np.cross(d, a); u /= np.linalg.norm(u)
+    v = np.cross(d, u)
+    out = [d]
+    for r in (0.5 * spread_deg, spread_deg):
+        t = np.radians(r)
+        for k in range(count // 2):
+            phi = 2 * np.pi * k / (count // 2)
+            c = np.cos(t) * d + np.sin(t) * (np.cos(phi) * u + np.sin(phi) * v)
+            if c[2] > 0.02:
+                out.append(c / np.linalg.norm(c))
+    return np.array(out)
 
 
 def choose_sun(luminance, features, directions, weights=None, min_corr=0.25, min_ratio=0.15):

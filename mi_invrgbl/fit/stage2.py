@@ -33,7 +33,7 @@ from .steps import make_optimizer, safe_step
 from .superpixels import slic_labels
 
 STAGE2_LR = {"normal": 5e-3, "albedo": 1e-2, "roughness": 1e-2, "lidar_albedo": 1e-2,
-             "sky": 1e-2, "sun": 2e-2, "range_exponent": 1e-2, "angle_exponent": 1e-2,
+             "sky": 1e-2, "sun": 2e-2, "range_exponent": 2e-3, "angle_exponent": 2e-3,
              "beam_gains": 1e-2}
 
 
@@ -84,7 +84,7 @@ class FrozenScene:
             if pose is not None and node.dynamic:
                 n = mi.Vector3f(*[dr.gather(mi.Float, normal, dr.arange(mi.UInt32, node.count) * 3 + j)
                                   for j in range(3)])
-                n = mi.Matrix3f(pose[:3, :3].astype(np.float32)) @ n
+                n = mi.Matrix3f(pose[:3, :3].tolist()) @ n
                 normal = dr.zeros(mi.Float, node.count * 3)
                 for j in range(3):
                     dr.scatter(normal, n[j], dr.arange(mi.UInt32, node.count) * 3 + j)
@@ -223,7 +223,10 @@ class Stage2:
             lid = frame.lidar
             obs = mi.Float(lid.intensity.ravel().astype(np.float32))
             hit = mi.Bool(lid.hit.ravel())
-            terms["lidar"] = losses.lidar_loss(out["lidar"]["intensity"], obs,
+            # Normalised to the observed scale: raw return power can be ~1e-3,
+            # which would make L_lidar vanish next to L_rgb at the paper's weights.
+            inv = 1.0 / ctx.intensity_scale
+            terms["lidar"] = losses.lidar_loss(out["lidar"]["intensity"] * inv, obs * inv,
                                                hit & (out["lidar"]["alpha"] > 0.5))
         return terms
 
