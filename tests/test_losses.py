@@ -290,3 +290,6 @@ def test_slic_nan_tiny_and_loss():
     rgb[0, 0] += 0.3
     flat = mi.Color3f(rgb.reshape(-1, 3).T.copy())
     assert L.superpixel_variance(flat, labels_to_drjit(labels), n)[0] > 0
+    # numpy labels with -1 (invalid) work directly
+    assert L.superpixel_variance(flat, labels, n)[0] == \
+        pytest.approx(L.superpixel_variance(flat, labels_to_drjit(labels), n)[0])

@@ -35,6 +35,7 @@ from dataclasses import dataclass, fields
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 #: Default bandwidth of the bilateral weight of L_rgb->lidar. The paper leaves
 #: sigma unspecified. Albedos live in [0, 1]; with sigma = 0.1 an RGB albedo
@@ -273,7 +274,9 @@ def superpixel_variance(b_rgb, labels, n_labels, mask=None):
     where the regions :math:`\Omega` are superpixels of the LiDAR albedo map
     (the paper uses SAM; we use SLIC, :mod:`mi_invrgbl.fit.superpixels`),
     given here as one label per pixel (``mi.UInt32``, values ``< n_labels``;
-    larger labels are ignored).
+    larger labels are ignored; a numpy array such as
+    :func:`~mi_invrgbl.fit.superpixels.slic_labels`' output, ``-1`` = ignored,
+    is converted).
 
     Per-segment means come from ``dr.scatter_reduce`` (differentiable), the
     variance of a segment is the mean squared deviation from its mean
@@ -283,6 +286,10 @@ def superpixel_variance(b_rgb, labels, n_labels, mask=None):
     over the valid pixels (``mask``). A single-pixel segment contributes 0.
     Differentiable in ``b_rgb``; ``labels`` are constants.
     """
+    if not dr.is_array_v(labels):
+        # numpy / lists, e.g. slic_labels' int32 map: -1 (invalid) -> ignored
+        flat = np.asarray(labels, np.int64).ravel()
+        labels = mi.UInt32(np.where(flat < 0, 0xFFFFFFFF, flat).astype(np.uint32))
     labels = _flat(labels)
     if not isinstance(labels, mi.UInt32):
         labels = mi.UInt32(labels)
