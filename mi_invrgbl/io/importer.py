@@ -200,12 +200,27 @@ def _parse_slice(text: str | None, n: int, what="--frames") -> list:
     return picked
 
 
-def _read_image_uint8(path, size):
+def _scaled_size(W0, H0, scale):
+    """Output size and the source crop (from the top left, so the principal
+    point stays put) that make the downscale the same along x and y: Mitsuba's
+    camera has square pixels. E.g. 1242x375 at 0.25 -> crop 1240x372 -> 310x93."""
+    if scale == 1:
+        return W0, H0, (W0, H0)
+    W, H = max(1, int(W0 * scale)), max(1, int(H0 * scale))
+    Wc, Hc = W / scale, H / scale
+    if abs(Wc - round(Wc)) < 1e-6 and abs(Hc - round(Hc)) < 1e-6:
+        return W, H, (int(round(Wc)), int(round(Hc)))
+    return W, H, (W0, H0)        # no exact crop: scales differ by < 1 pixel over the image
+
+
+def _read_image_uint8(path, size, crop=None):
     import cv2
 
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
         raise UserError(f"{path}: not a readable image")
+    if crop is not None:
+        img = img[:crop[1], :crop[0]]
     if (img.shape[1], img.shape[0]) != tuple(size):
         img = cv2.resize(img, tuple(size), interpolation=cv2.INTER_AREA)
     return np.ascontiguousarray(img[:, :, ::-1])     # RGB uint8
@@ -295,8 +310,8 @@ def _read(data, opts, log):
     drive = src.drive
     positions = _parse_slice(opts.frames, len(drive))
     W0, H0 = drive.image_size
-    W, H = max(1, int(round(W0 * opts.image_scale))), max(1, int(round(H0 * opts.image_scale)))
-    sx, sy = W / W0, H / H0
+    W, H, crop = _scaled_size(W0, H0, opts.image_scale)
+    sx, sy = W / crop[0], H / crop[1]
     K = drive.K.copy()
     K[0, 0] *= sx
     K[1, 1] *= sy
@@ -316,13 +331,14 @@ def _read(data, opts, log):
             continue
         kept.append(p)
         scans.append((pts, inten))
-        images.append(_read_image_uint8(drive.image_paths[p], (W, H)))
+        images.append(_read_image_uint8(drive.image_paths[p], (W, H), crop))
     if not kept:
         raise UserError(f"{drive.root}: no frame with a usable LiDAR sweep")
     log("[import] %s (%s layout): %d frames%s, image %dx%d -> %dx%d"
         % (drive.root, src.kind, len(kept),
            " (%d skipped)" % len(skipped) if skipped else "", W0, H0, W, H))
     state = {"positions": kept, "scans": scans, "images": images, "K": K, "size": (W, H),
+             "crop": crop if tuple(crop) != (W0, H0) else None,
              "skipped": skipped, "counts": {"skipped_frames": len(skipped)},
              "odometry": {}, "object_report": []}
     return src, state
@@ -723,7 +739,9 @@ def _write(src, state, opts, tmp: Path, scene_name: str, data):
             objects={o.name: o.poses[i] for o in dyn},
             extra={"source_frame": int(drive.frames[p])}))
 
-    camera = CameraInfo(W, H, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+    camera = CameraInfo(W, H, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
+                        extra={"image_scale": opts.image_scale}
+                        | ({"source_crop_wh": list(state["crop"])} if state["crop"] else {}))
     lidar = LidarInfo(state["beams"], opts.azimuth_steps,
                       [round(float(np.degrees(e)), 6) for e in state["lidar_table"]], kind,
                       extra={"far_clip": 120.0})

@@ -30,7 +30,9 @@ API
     times.txt}`` and optional ``poses/XX.txt`` (camera-0 poses, 12 numbers per
     line). ``path`` is the dataset root or the sequence folder.
 ``write_kitti_odometry(root, sequence, ...)``
-    Writes that layout (synthetic scenes use it so one reader serves both).
+    Writes that layout; its pieces ``write_odometry_calib``,
+    ``write_poses_file`` and ``write_times_file`` are what the synthetic
+    street generator writes with, so one format definition serves both.
 ``read_tracking_labels(path, world_from_cam=None) -> dict[int, Track]``
     KITTI tracking ``label_02/XXXX.txt`` -> per-object, per-frame poses.
 ``oxts_to_poses(oxts) -> (N, 4, 4)``
@@ -470,6 +472,35 @@ def read_kitti_odometry(path, sequence: str | None = None, check: bool = True) -
     return result
 
 
+def _fmt_numbers(a) -> str:
+    return " ".join(f"{v:.12e}" for v in np.ravel(a))
+
+
+def write_odometry_calib(path, P2, T_velo_to_cam, P0=None) -> None:
+    """KITTI odometry ``calib.txt``: ``P0..P3`` (3x4; P1 = P0, P3 = P2) and
+    ``Tr`` (velodyne -> camera 0, 3x4). ``P0`` defaults to ``P2`` without its
+    camera offset."""
+    P2 = np.asarray(P2, np.float64).reshape(3, 4)
+    Tr = np.asarray(T_velo_to_cam, np.float64).reshape(-1)[:12].reshape(3, 4)
+    if P0 is None:
+        P0 = np.hstack([P2[:, :3], np.zeros((3, 1))])
+    lines = [f"P0: {_fmt_numbers(P0)}", f"P1: {_fmt_numbers(P0)}", f"P2: {_fmt_numbers(P2)}",
+             f"P3: {_fmt_numbers(P2)}", f"Tr: {_fmt_numbers(Tr)}"]
+    Path(path).write_text("\n".join(lines) + "\n")
+
+
+def write_poses_file(path, cam_poses) -> None:
+    """KITTI ``poses/XX.txt``: one row of 12 numbers (3x4, row-major) per
+    camera-0 pose."""
+    cam = np.asarray(cam_poses, np.float64).reshape(-1, 4, 4)
+    np.savetxt(path, cam[:, :3, :].reshape(len(cam), 12), fmt="%.12e")
+
+
+def write_times_file(path, times) -> None:
+    """KITTI ``times.txt``: one time in seconds per line."""
+    np.savetxt(path, np.asarray(times, np.float64).reshape(-1), fmt="%.6e")
+
+
 def write_kitti_odometry(root, sequence: str, P2, T_velo_to_cam, images, scans,
                          poses=None, times=None, P0=None):
     """Write a sequence in the KITTI odometry layout under ``root``.
@@ -486,17 +517,8 @@ def write_kitti_odometry(root, sequence: str, P2, T_velo_to_cam, images, scans,
     seq_dir = root / "sequences" / sequence
     (seq_dir / "image_2").mkdir(parents=True, exist_ok=True)
     (seq_dir / "velodyne").mkdir(parents=True, exist_ok=True)
-    P2 = np.asarray(P2, np.float64).reshape(3, 4)
     Tr = np.asarray(T_velo_to_cam, np.float64).reshape(4, 4)
-    if P0 is None:
-        P0 = np.hstack([P2[:, :3], np.zeros((3, 1))])
-
-    def fmt(a):
-        return " ".join(f"{v:.12e}" for v in np.ravel(a))
-
-    lines = [f"P0: {fmt(P0)}", f"P1: {fmt(P0)}", f"P2: {fmt(P2)}",
-             f"P3: {fmt(P2)}", f"Tr: {fmt(Tr[:3])}"]
-    (seq_dir / "calib.txt").write_text("\n".join(lines) + "\n")
+    write_odometry_calib(seq_dir / "calib.txt", P2, Tr, P0)
 
     n = len(scans)
     if len(images) != n:
@@ -507,14 +529,13 @@ def write_kitti_odometry(root, sequence: str, P2, T_velo_to_cam, images, scans,
         cv2.imwrite(str(seq_dir / "image_2" / f"{k:06d}.png"), bgr)
         write_velodyne(seq_dir / "velodyne" / f"{k:06d}.bin", *scans[k])
     times = np.arange(n) * 0.1 if times is None else np.asarray(times, np.float64)
-    np.savetxt(seq_dir / "times.txt", times, fmt="%.6e")
+    write_times_file(seq_dir / "times.txt", times)
     if poses is not None:
         poses = np.asarray(poses, np.float64)
         # world(cam0 of frame 0) <- cam0_i = Tr . world_from_velo_i . Tr^-1
         cam = Tr @ np.linalg.inv(poses[0]) @ poses @ np.linalg.inv(Tr)
         (root / "poses").mkdir(parents=True, exist_ok=True)
-        np.savetxt(root / "poses" / f"{sequence}.txt",
-                   cam[:, :3, :].reshape(n, 12), fmt="%.12e")
+        write_poses_file(root / "poses" / f"{sequence}.txt", cam)
     return seq_dir
 
 

@@ -55,28 +55,28 @@ def write_png_linear_grey(path: str, grey: np.ndarray) -> None:
     bitmap.write(path)
 
 
-def _rows(m: np.ndarray) -> str:
-    return " ".join("%.12e" % v for v in np.asarray(m, dtype=np.float64).reshape(-1))
-
-
 def write_calib(path: str, K: np.ndarray, cam_from_velo: np.ndarray) -> None:
     """KITTI odometry calib.txt: P0..P3 (3x4) and Tr (velodyne -> camera 0, 3x4).
 
     There is a single rendered camera, so P0..P3 are all ``K [I | 0]``:
-    image_2 is camera 0's image and no baseline offset applies.
+    image_2 is camera 0's image and no baseline offset applies. Written by
+    the reader's own writer (:func:`mi_invrgbl.io.kitti.write_odometry_calib`).
     """
-    P = np.hstack([K, np.zeros((3, 1))])
-    lines = ["P%d: %s" % (i, _rows(P)) for i in range(4)]
-    lines.append("Tr: %s" % _rows(cam_from_velo[:3, :4]))
-    with open(path, "w") as f:
-        f.write("\n".join(lines) + "\n")
+    from ..io.kitti import write_odometry_calib
+    P = np.hstack([np.asarray(K, np.float64), np.zeros((3, 1))])
+    Tr = np.eye(4)
+    Tr[:3, :4] = np.asarray(cam_from_velo, np.float64)[:3, :4]
+    write_odometry_calib(path, P, Tr, P0=P)
 
 
 def write_poses(path: str, poses: np.ndarray) -> None:
-    """KITTI poses file: one row of 12 numbers (3x4, row-major) per frame."""
-    with open(path, "w") as f:
-        for m in poses:
-            f.write(_rows(m[:3, :4]) + "\n")
+    """KITTI poses file: one row of 12 numbers (3x4, row-major) per frame
+    (:func:`mi_invrgbl.io.kitti.write_poses_file`)."""
+    from ..io.kitti import write_poses_file
+    poses = np.asarray(poses, np.float64)
+    full = np.tile(np.eye(4), (len(poses), 1, 1))
+    full[:, :3, :4] = poses[:, :3, :4]
+    write_poses_file(path, full)
 
 
 def read_poses(path: str) -> np.ndarray:
@@ -97,9 +97,9 @@ def read_calib(path: str) -> dict:
 
 
 def write_times(path: str, times) -> None:
-    with open(path, "w") as f:
-        for t in times:
-            f.write("%.6e\n" % t)
+    """KITTI times.txt (:func:`mi_invrgbl.io.kitti.write_times_file`)."""
+    from ..io.kitti import write_times_file
+    write_times_file(path, times)
 
 
 def write_velodyne(path: str, points: np.ndarray) -> None:

@@ -1,0 +1,496 @@
+"""``mi-invrgbl import``: drive -> scene (docs/scene_format.md).
+
+A tiny synthetic street (6 frames, 64x24 pixels, 256 azimuth steps, a moving
+and a parked car) is generated and imported once per session; the shared
+KITTI excerpt is imported for its first 3 frames at 1/4 image size (skipped
+when absent). The sensors are checked against independent projections: a
+LiDAR point projected with K and camera_to_world must lie on the Mitsuba
+camera's ray through that pixel, and on the lidar sensor's beam through its
+range-image pixel.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import warnings
+
+import numpy as np
+import pytest
+import mitsuba as mi
+
+from mi_invrgbl.errors import UserError
+from mi_invrgbl.io import init_gaussians as ig
+from mi_invrgbl.io import objects as objs
+from mi_invrgbl.io.images import read_exr
+from mi_invrgbl.io.importer import ImportOptions, import_scene
+from mi_invrgbl.io.velodyne import write_velodyne
+from mi_invrgbl.plugins.gaussian_ply import read_ply, quaternion_to_matrix
+from mi_invrgbl.scene_graph import Frames, set_frame
+
+TINY = dict(seed=3, frames=6, width=64, height=24, azimuth_steps=256, spp=2, night=False)
+TINY_OPTS = dict(max_points=20000, azimuth_steps=256)
+
+
+def _quiet(*_a, **_k):
+    pass
+
+
+@pytest.fixture(scope="session")
+def street(tmp_path_factory):
+    from mi_invrgbl.synthetic import StreetConfig, generate_street
+    mi.set_variant("llvm_ad_rgb")
+    out = tmp_path_factory.mktemp("import_street") / "street"
+    generate_street(str(out), StreetConfig(**TINY), log=_quiet)
+    return out
+
+
+@pytest.fixture(scope="session")
+def imported(street, tmp_path_factory):
+    out = tmp_path_factory.mktemp("import_out") / "scene" / "scene.xml"
+    report = import_scene(street, out, ImportOptions(check_odometry=True, **TINY_OPTS), log=_quiet)
+    return out.parent, report
+
+
+@pytest.fixture(scope="session")
+def kitti_imported(tmp_path_factory):
+    from conftest import SHARED
+    data = SHARED / "data" / "kitti-raw-excerpt"
+    if not data.exists():
+        pytest.skip("shared KITTI excerpt not present")
+    out = tmp_path_factory.mktemp("import_kitti") / "kitti" / "scene.xml"
+    report = import_scene(data, out, ImportOptions(frames="0:3", image_scale=0.25,
+                                                   max_points=20000, azimuth_steps=1024),
+                          log=_quiet)
+    return out.parent, report
+
+
+@pytest.fixture
+def street_copy(street, tmp_path):
+    """A writable copy of the tiny street's KITTI files (no ground truth)."""
+    dst = tmp_path / "data"
+    shutil.copytree(street / "sequences", dst / "sequences")
+    shutil.copytree(street / "poses", dst / "poses")
+    shutil.copytree(street / "label_02", dst / "label_02")
+    return dst
+
+
+# ----------------------------------------------------------------------------
+# Layout and loading
+# ----------------------------------------------------------------------------
+
+def test_layout(imported):
+    root, report = imported
+    for name in ("scene.xml", "frames.json", "background.ply", "object_0.ply"):
+        assert (root / name).is_file(), name
+    assert not (root / "object_1.ply").exists()          # the parked car stays background
+    frames = Frames.load(root / "scene.xml")
+    assert len(frames) == TINY["frames"] == report.counts["frames"]
+    for f in frames:
+        assert f.image.is_file() and f.lidar_scan.is_file() and f.points.is_file()
+        assert f.held_out == (f.index % 5 == 4)
+        assert f.camera == "camera_%04d" % f.index and f.lidar == "lidar_%04d" % f.index
+        pts = np.load(f.points)
+        assert pts.dtype == np.float32 and pts.shape[1] == 4
+    assert frames.camera.width == TINY["width"] and frames.camera.height == TINY["height"]
+    assert frames.lidar.beams == 64 and frames.lidar.azimuth_steps == 256
+    assert frames.lidar.intensity == "raw"
+    assert frames.ground_truth is not None and frames.ground_truth.name == "gt"
+    assert frames.extra["pose_source"] == "poses file"
+    # no temporary folders left next to the output
+    assert [p.name for p in root.parent.iterdir()] == [root.name]
+
+
+def test_scene_loads_and_renders(imported):
+    root, _ = imported
+    scene = mi.load_file(str(root / "scene.xml"), spp=1, samples=4)
+    ids = [s.id() for s in scene.sensors()]
+    assert ids[:2] == ["camera_0000", "lidar_0000"] and len(ids) == 2 * TINY["frames"]
+    assert {s.id() for s in scene.shapes()} == {"background", "object_0"}
+    assert scene.emitters()[0].id() == "sky"
+    img = np.array(mi.render(scene, sensor=scene.sensors()[2]))
+    assert img.shape[:2] == (TINY["height"], TINY["width"])
+    assert np.isfinite(img).all() and img[..., :3].mean() > 0.05
+
+
+def test_observation_exr(imported):
+    root, _ = imported
+    frames = Frames.load(root)
+    data, names = read_exr(str(frames[0].lidar_scan))
+    ch = {n: data[..., k] for k, n in enumerate(names)}
+    assert set(ch) == {"intensity", "range", "hit"}
+    assert ch["hit"].shape == (64, 256)
+    hit = ch["hit"] > 0.5
+    assert hit.mean() > 0.3
+    assert (ch["intensity"][hit] >= 0).all() and (ch["intensity"][hit] <= 1).all()
+    assert (ch["range"][~hit] == 0).all() and (ch["range"][hit] > 0).all()
+
+
+# ----------------------------------------------------------------------------
+# Sensor conventions
+# ----------------------------------------------------------------------------
+
+def _camera_round_trip(root, max_points=300):
+    frames = Frames.load(root)
+    scene = mi.load_file(str(root / "scene.xml"))
+    sensors = {s.id(): s for s in scene.sensors()}
+    W, H = frames.camera.width, frames.camera.height
+    worst = 0.0
+    for f in frames:
+        pts = np.load(f.points)[:, :3].astype(np.float64)
+        uv, z, ok = ig.project(pts, np.linalg.inv(f.camera_to_world), frames.camera.K, (W, H))
+        sel = np.nonzero(ok & (z > 2))[0]
+        sel = sel[:: max(1, len(sel) // max_points)]
+        assert sel.size > 20
+        pos = (uv[sel] + 0.5) / np.array([W, H])
+        ray, _ = sensors[f.camera].sample_ray(0.0, 0.5, mi.Point2f(pos[:, 0], pos[:, 1]),
+                                              mi.Point2f(0.5, 0.5))
+        o = np.array(ray.o).reshape(3, -1).T
+        d = np.array(ray.d).reshape(3, -1).T
+        v = pts[sel] - o
+        along = np.sum(v * d, axis=1)
+        perp = np.linalg.norm(v - along[:, None] * d, axis=1)
+        assert (along > 0).all()
+        worst = max(worst, float((perp / np.linalg.norm(v, axis=1)).max()))
+    return worst
+
+
+def test_camera_convention_synthetic(imported):
+    """A point projected with K and camera_to_world lies on the Mitsuba
+    camera's ray through that pixel (within float precision)."""
+    assert _camera_round_trip(imported[0]) < 1e-4
+
+
+def test_camera_convention_kitti(kitti_imported):
+    """Same with KITTI's off-centre principal point and 1/4 image size."""
+    root, _ = kitti_imported
+    frames = Frames.load(root)
+    assert frames.camera.width == round(1242 * 0.25)
+    assert abs(frames.camera.cx - (frames.camera.width / 2 - 0.5)) > 1   # really off-centre
+    assert _camera_round_trip(root) < 1e-4
+
+
+def test_lidar_convention(imported):
+    """A point's range-image pixel (row = nearest beam, column from its
+    azimuth) is the lidar sensor's beam within half a pixel, and the
+    observation EXR holds a return there no farther than the point."""
+    root, _ = imported
+    frames = Frames.load(root)
+    scene = mi.load_file(str(root / "scene.xml"))
+    sensors = {s.id(): s for s in scene.sensors()}
+    table = np.radians(frames.lidar.elevations_deg)
+    W, Hb = frames.lidar.azimuth_steps, frames.lidar.beams
+    half_el = 0.5 * np.abs(np.diff(table)).max() + 1e-6
+    for f in list(frames)[:3]:
+        pts = np.load(f.points)
+        inv = np.linalg.inv(f.lidar_to_world)
+        local = pts[:, :3] @ inv[:3, :3].T + inv[:3, 3]
+        local = local[:: max(1, len(local) // 500)]
+        el = np.arctan2(local[:, 2], np.hypot(local[:, 0], local[:, 1]))
+        az = np.arctan2(local[:, 1], local[:, 0])
+        row = np.argmin(np.abs(el[:, None] - table[None]), axis=1)
+        col = np.mod(np.floor((1 - az / math.pi) * W / 2).astype(int), W)
+        pos = np.stack([(col + 0.5) / W, (row + 0.5) / Hb], axis=1)
+        ray, _ = sensors[f.lidar].sample_ray(0.0, 0.5, mi.Point2f(pos[:, 0], pos[:, 1]),
+                                             mi.Point2f(0.5, 0.5))
+        d_world = np.array(ray.d).reshape(3, -1).T
+        d = d_world @ inv[:3, :3].T
+        ray_el = np.arcsin(np.clip(d[:, 2], -1, 1))
+        ray_az = np.arctan2(d[:, 1], d[:, 0])
+        daz = np.abs(np.angle(np.exp(1j * (ray_az - az))))
+        assert (daz <= math.pi / W + 1e-5).all()
+        assert (np.abs(ray_el - el) <= half_el).all()
+        data, names = read_exr(str(f.lidar_scan))
+        ch = {n: data[..., k] for k, n in enumerate(names)}
+        rng = np.linalg.norm(local, axis=1)
+        assert (ch["hit"][row, col] > 0.5).all()
+        assert (ch["range"][row, col] <= rng + 1e-3).all()
+
+
+# ----------------------------------------------------------------------------
+# Gaussians
+# ----------------------------------------------------------------------------
+
+def test_background_gaussians(imported):
+    root, report = imported
+    frames = Frames.load(root)
+    c = read_ply(str(root / "background.ply"))
+    assert len(c) <= TINY_OPTS["max_points"] == report.counts["background_gaussians"]
+    assert np.allclose(np.linalg.norm(c.normals, axis=1), 1, atol=1e-5)
+    # the normal is the rotation's third axis and the thinnest one
+    R = quaternion_to_matrix(c.quaternions.astype(np.float64))
+    assert np.allclose(R[:, :, 2], c.normals, atol=1e-4)
+    assert (c.scales[:, 2] <= c.scales[:, 0] + 1e-9).all()
+    # facing the nearest LiDAR position
+    origins = np.array([f.lidar_to_world[:3, 3] for f in frames])
+    k = np.argmin(((c.centers[:, None] - origins[None]) ** 2).sum(-1), axis=1)
+    v = origins[k] - c.centers
+    assert np.mean(np.sum(c.normals * v, axis=1) > 0) > 0.97
+    # road: flat, normals up, LiDAR albedo near the true 0.15 (textured)
+    z0 = np.percentile(c.centers[:, 2], 5)
+    road = (np.abs(c.centers[:, 2] - z0) < 0.05) & (np.abs(c.centers[:, 1]) < 3)
+    assert road.sum() > 500
+    assert np.median(c.normals[road, 2]) > 0.99
+    assert 0.1 < np.median(c.lidar_albedo[road]) < 0.2
+    assert (c.lidar_albedo >= 0).all() and (c.lidar_albedo <= 1).all()
+    assert np.allclose(c.opacities, 0.7, atol=1e-4) and np.allclose(c.roughness, 0.5)
+    # colours: some seen by a camera, the rest grey
+    seen = ~np.all(np.isclose(c.albedo, 0.5), axis=1)
+    assert 0.05 < seen.mean() < 1.0
+
+
+def test_moving_object(imported, street):
+    root, report = imported
+    frames = Frames.load(root)
+    assert list(frames.objects) == ["object_0"]
+    obj = frames.objects["object_0"]
+    assert obj.moving and obj.kind == "Car" and obj.track_id == 0
+    tracks = {t["track_id"]: t for t in frames.extra["tracks"]}
+    assert tracks[0]["moving"] and tracks[0]["dynamic"]
+    assert not tracks[1]["moving"] and not tracks[1]["dynamic"]
+    assert tracks[1]["displacement_m"] < 0.05
+    c = read_ply(str(obj.ply))
+    assert len(c) == 5000
+    h, w, l = obj.size_hwl
+    assert (np.abs(c.centers) <= np.array([l / 2, w / 2, h / 2]) + objs.BOX_MARGIN + 1e-4).all()
+    # poses: the generator's true car poses (its car frame: origin at the bottom)
+    traj = json.loads((street / "gt" / "trajectory.json").read_text())
+    G = np.array(frames.extra["gt_world_from_world"])
+    up = np.eye(4)
+    up[2, 3] = h / 2
+    for f in frames:
+        true = np.array(traj["world_from_moving_car"][f.index]) @ up
+        np.testing.assert_allclose(G @ f.objects["object_0"], true, atol=1e-4)
+        np.testing.assert_allclose(G @ f.lidar_to_world, traj["world_from_velo"][f.index],
+                                   atol=1e-6)
+    # set_frame moves the node to each frame's pose
+    scene = mi.load_file(str(root / "scene.xml"))
+    shape = [s for s in scene.shapes() if s.id() == "object_0"][0]
+    for i in (3, 1):
+        set_frame(scene, frames, i)
+        data = np.array(mi.traverse(shape)["data"]).reshape(-1, 10)
+        T = frames[i].objects["object_0"]
+        np.testing.assert_allclose(data[:, :3], c.centers @ T[:3, :3].T + T[:3, 3], atol=1e-3)
+
+
+def test_dynamic_modes(street, tmp_path):
+    rep = import_scene(street, tmp_path / "all" / "scene.xml",
+                       ImportOptions(dynamic="all", frames="0:3", object_points=200, **TINY_OPTS),
+                       log=_quiet)
+    frames = Frames.load(rep.scene)
+    assert set(frames.objects) == {"object_0", "object_1"}
+    assert not frames.objects["object_1"].moving
+    rep = import_scene(street, tmp_path / "none" / "scene.xml",
+                       ImportOptions(dynamic="none", frames="0:3", **TINY_OPTS), log=_quiet)
+    assert Frames.load(rep.scene).objects == {}
+    assert "object_" not in (rep.scene).read_text()
+
+
+def test_odometry_check(imported):
+    _, report = imported
+    odo = report.odometry
+    # kiss-icp on the corridor-like street: ground points must go (see io.odometry)
+    assert odo["ate_m_ground_removed"] < 0.3
+    assert odo["path_length_m"] == pytest.approx(5.0, abs=0.05)
+
+
+def test_kitti_excerpt(kitti_imported):
+    root, report = kitti_imported
+    frames = Frames.load(root)
+    assert len(frames) == 3 and frames.objects == {}
+    assert frames.lidar.intensity == "reflectivity" and frames.lidar.beams == 64
+    el = np.array(frames.lidar.elevations_deg)
+    # apparent (from-origin) beam elevations of the HDL-64: about +2 .. -24 degrees
+    assert (np.diff(el) < 0).all() and 0 < el[0] < 6 and -27 < el[-1] < -21
+    assert frames.extra["pose_source"] == "odometry"
+    np.testing.assert_allclose(frames[0].lidar_to_world, np.eye(4), atol=1e-9)
+    assert report.counts["background_gaussians"] == 20000
+    import cv2
+    img = cv2.imread(str(frames[0].image))
+    assert img.shape[:2] == (frames.camera.height, frames.camera.width)
+    mi.load_file(str(root / "scene.xml"))
+
+
+# ----------------------------------------------------------------------------
+# Pieces
+# ----------------------------------------------------------------------------
+
+def test_knn_exact_and_pca():
+    rng = np.random.default_rng(0)
+    p = rng.uniform(-5, 5, (3000, 3))
+    p[:, 2] = 0.01 * rng.normal(size=3000) + 0.1 * p[:, 0]      # a tilted plane
+    idx, d = ig.knn(p, 8)
+    for j in rng.integers(0, 3000, 20):
+        true = np.sort(np.linalg.norm(p - p[j], axis=1))[:8]
+        np.testing.assert_allclose(d[j], true, atol=1e-4)
+    n, t, eig = ig.pca_frames(p, idx)
+    truth = np.array([-0.1, 0, 1]) / np.linalg.norm([-0.1, 0, 1])
+    assert np.median(np.abs(n @ truth)) > 0.99
+    n = ig.orient_towards(n, np.tile([0, 0, 1.0], (len(n), 1)))
+    assert (n[:, 2] > 0).all()
+    q = ig.frames_to_quaternions(t, n)
+    R = quaternion_to_matrix(q)
+    np.testing.assert_allclose(R[:, :, 2], n / np.linalg.norm(n, axis=1, keepdims=True), atol=1e-9)
+    np.testing.assert_allclose(np.linalg.det(R), 1, atol=1e-9)
+
+
+def test_lidar_albedo_models():
+    # paper model: I = rho cos / (pi d^2) * P, scaled so white at 2 m facing reads 1
+    rho, d, cos = 0.3, 7.0, 0.6
+    I = rho * cos / d ** 2 * 2.0 ** 2
+    assert ig.lidar_albedo([I], [d], [cos], "raw", 2.0)[0] == pytest.approx(rho)
+    assert ig.lidar_albedo([0.4], [50.0], [0.1], "reflectivity")[0] == pytest.approx(0.4)
+    assert ig.lidar_albedo([0.9], [30.0], [1.0], "raw")[0] == 1.0            # clipped
+
+
+def test_object_frame_matches_kitti_box():
+    """Our object frame (centre, x fwd, y left, z up) vs KITTI's box frame."""
+    h = 1.5
+    T = objs.kitti_box_from_object(h)
+    # bottom centre of ours -> KITTI origin; our up -> KITTI -y; our left -> KITTI +z
+    np.testing.assert_allclose(T @ [0, 0, -h / 2, 1], [0, 0, 0, 1], atol=1e-12)
+    np.testing.assert_allclose(T[:3, :3] @ [0, 0, 1], [0, -1, 0])
+    np.testing.assert_allclose(T[:3, :3] @ [0, 1, 0], [0, 0, 1])
+    assert np.linalg.det(T[:3, :3]) == pytest.approx(1)
+
+
+def test_fill_poses_interpolates_and_holds():
+    def pose(yaw, x):
+        T = np.eye(4)
+        T[:3, :3] = [[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0],
+                     [0, 0, 1]]
+        T[0, 3] = x
+        return T
+    out = objs.fill_poses([1, 3], [pose(0, 0), pose(0.4, 2)], 5)
+    np.testing.assert_allclose(out[0], pose(0, 0))                 # held before
+    np.testing.assert_allclose(out[2], pose(0.2, 1), atol=1e-9)    # interpolated
+    np.testing.assert_allclose(out[4], pose(0.4, 2))               # held after
+
+
+# ----------------------------------------------------------------------------
+# Bad input
+# ----------------------------------------------------------------------------
+
+def _no_leftovers(parent):
+    return [p.name for p in parent.iterdir() if p.name.startswith(".")] == []
+
+
+def test_missing_input(tmp_path):
+    with pytest.raises(UserError, match="nowhere"):
+        import_scene(tmp_path / "nowhere", tmp_path / "out" / "scene.xml", log=_quiet)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(UserError, match="empty"):
+        import_scene(tmp_path / "empty", tmp_path / "out" / "scene.xml", log=_quiet)
+    assert not (tmp_path / "out").exists() and _no_leftovers(tmp_path)
+
+
+def test_bad_bin_size(street_copy, tmp_path):
+    bad = street_copy / "sequences" / "00" / "velodyne" / "000002.bin"
+    with open(bad, "ab") as f:
+        f.write(b"\0" * 5)
+    with pytest.raises(UserError, match="000002.bin.*multiple of 16"):
+        import_scene(street_copy, tmp_path / "out" / "scene.xml",
+                     ImportOptions(**TINY_OPTS), log=_quiet)
+    assert not (tmp_path / "out").exists() and _no_leftovers(tmp_path)
+
+
+def test_nan_points_dropped_with_warning(street_copy, tmp_path):
+    path = street_copy / "sequences" / "00" / "velodyne" / "000001.bin"
+    data = np.fromfile(path, "<f4").reshape(-1, 4)
+    data[:7, 0] = np.nan
+    data[7:9, 3] = np.inf
+    write_velodyne(path, data[:, :3], np.nan_to_num(data[:, 3], posinf=np.inf))
+    with pytest.warns(UserWarning, match="000001.bin.*dropped 9"):
+        rep = import_scene(street_copy, tmp_path / "out" / "scene.xml",
+                           ImportOptions(frames="0:3", **TINY_OPTS), log=_quiet)
+    pts = np.load(Frames.load(rep.scene)[1].points)
+    assert np.isfinite(pts).all() and len(pts) == len(data) - 9
+
+
+def test_empty_scan_skipped(street_copy, tmp_path):
+    (street_copy / "sequences" / "00" / "velodyne" / "000001.bin").write_bytes(b"")
+    with pytest.warns(UserWarning, match="000001.bin"):
+        rep = import_scene(street_copy, tmp_path / "out" / "scene.xml",
+                           ImportOptions(frames="0:4", **TINY_OPTS), log=_quiet)
+    frames = Frames.load(rep.scene)
+    assert len(frames) == 3
+    assert [f.extra["source_frame"] for f in frames] == [0, 2, 3]
+    assert frames.extra["skipped_source_frames"] == [1]
+
+
+def test_mismatched_frame_counts(street_copy, tmp_path):
+    (street_copy / "sequences" / "00" / "image_2" / "000005.png").unlink()
+    with pytest.warns(UserWarning, match="5 images but 6 LiDAR sweeps"):
+        rep = import_scene(street_copy, tmp_path / "out" / "scene.xml",
+                           ImportOptions(**TINY_OPTS), log=_quiet)
+    assert len(Frames.load(rep.scene)) == 5
+    # a poses file shorter than the sequence is an error naming it
+    poses = street_copy / "poses" / "00.txt"
+    poses.write_text("\n".join(poses.read_text().splitlines()[:3]) + "\n")
+    with pytest.warns(UserWarning, match="5 images"), pytest.raises(UserError, match="00.txt"):
+        import_scene(street_copy, tmp_path / "out2" / "scene.xml", log=_quiet)
+
+
+def test_calibration_without_points_in_image(street_copy, tmp_path):
+    calib = street_copy / "sequences" / "00" / "calib.txt"
+    lines = calib.read_text().splitlines()
+    # Tr: shift the LiDAR 10 km to the side (every point lands far outside the image)
+    tr = np.array([float(v) for v in lines[-1].split(":")[1].split()]).reshape(3, 4)
+    tr[0, 3] += 1e4
+    lines[-1] = "Tr: " + " ".join("%.12e" % v for v in tr.ravel())
+    calib.write_text("\n".join(lines) + "\n")
+    with pytest.raises(UserError, match="calib.txt"):
+        import_scene(street_copy, tmp_path / "out" / "scene.xml", log=_quiet)
+
+
+def test_no_half_written_output(street, tmp_path, monkeypatch):
+    from mi_invrgbl.io import importer
+
+    def broken(path):
+        raise RuntimeError("simulated crash after writing")
+    monkeypatch.setattr(importer, "_verify", broken)
+    with pytest.raises(RuntimeError, match="simulated"):
+        import_scene(street, tmp_path / "out" / "scene.xml",
+                     ImportOptions(frames="0:2", **TINY_OPTS), log=_quiet)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_existing_output(street, tmp_path):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("x")
+    with pytest.raises(UserError, match="already exists"):
+        import_scene(street, out / "scene.xml", ImportOptions(frames="0:2", **TINY_OPTS),
+                     log=_quiet)
+    assert (out / "keep.txt").exists()
+    rep = import_scene(street, out / "scene.xml",
+                       ImportOptions(frames="0:2", overwrite=True, **TINY_OPTS), log=_quiet)
+    assert not (out / "keep.txt").exists() and (out / "scene.xml").is_file()
+    assert len(Frames.load(rep.scene)) == 2 and _no_leftovers(tmp_path)
+
+
+def test_bad_options(street, tmp_path):
+    with pytest.raises(UserError, match="--frames"):
+        import_scene(street, tmp_path / "o" / "scene.xml", ImportOptions(frames="9:12"),
+                     log=_quiet)
+    with pytest.raises(UserError, match="--image-scale"):
+        import_scene(street, tmp_path / "o" / "scene.xml", ImportOptions(image_scale=2),
+                     log=_quiet)
+    with pytest.raises(UserError, match="scene.xml"):
+        import_scene(street, tmp_path / "o", log=_quiet)
+
+
+def test_cli(street, tmp_path, capsys):
+    from mi_invrgbl.cli import main
+    out = tmp_path / "cli" / "scene.xml"
+    assert main(["import", str(street), "-o", str(out), "--frames", "0:2",
+                 "--max-points", "5000", "--azimuth-steps", "256", "--image-scale", "0.5"]) == 0
+    text = capsys.readouterr().out
+    for step in ("read", "odometry", "accumulate", "normals", "objects", "colours", "write"):
+        assert step in text
+    assert Frames.load(out).camera.width == 32
+    assert main(["import", str(tmp_path / "missing"), "-o", str(tmp_path / "x" / "s.xml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "missing" in err[0]
