@@ -148,28 +148,11 @@ class FrameSet:
         return any(e.get("objects") for e in self._entries.values())
 
     def _set_objects(self, scene, index):
-        try:
-            from .. import scene_graph
-        except ImportError:
-            scene_graph = None
-        if scene_graph is not None:
-            if self._scene_graph is None:
-                self._scene_graph = scene_graph.Frames.load(self.scene_path)
-            scene_graph.set_frame(scene, self._scene_graph, index)
-            return
-        # Until scene_graph exists: objects were loaded at their frame-0 pose.
-        from .posing import NodePoser
-        if self._poser is None:
-            first = self._entries[min(self._entries)]
-            params = self._parameters(scene)
-            self._poser = {name: NodePoser(scene, name, np.asarray(pose), params)
-                           for name, pose in first.get("objects", {}).items()
-                           if name + ".data" in params or name + ".vertex_positions" in params}
-        for name, poser in self._poser.items():
-            pose = self._entries[index].get("objects", {}).get(name)
-            if pose is not None:
-                poser.set_pose(np.asarray(pose), update=False)
-        self._parameters(scene).update()
+        from .. import scene_graph
+        if self._scene_graph is None:
+            self._scene_graph = scene_graph.Frames.load(self.frames_json)
+            self._positions = {r.index: k for k, r in enumerate(self._scene_graph)}
+        scene_graph.set_frame(scene, self._scene_graph, self._positions[index])
 
     # ------------------------------------------------------------ queries
     def camera_to_world(self, scene, frame: Frame) -> np.ndarray:

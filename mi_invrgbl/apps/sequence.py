@@ -19,10 +19,10 @@ from . import video
 from .frames import FrameSet
 
 
-def load_scene(path: str):
+def load_scene(path: str, defines=None):
     """``mi.load_file`` with one clear error (the message names the file)."""
     from ..commands.render import load_scene as _load
-    return _load(path)
+    return _load(path, defines)
 
 
 def render_frames(scene, frames: FrameSet, out_dir: str, spp: int = 0, hooks=(),
@@ -65,14 +65,17 @@ def render_frames(scene, frames: FrameSet, out_dir: str, spp: int = 0, hooks=(),
     return {"files": files + animation, "images": images, "seconds": time.time() - t0}
 
 
-def write_and_load(doc, original, out_dir: str, tag: str, log=print):
-    """Write the edited XML (+ diff) into ``out_dir``, print where, and load it."""
+def write_and_load(doc, original, out_dir: str, tag: str, log=print, defines=None):
+    """Write the edited XML (+ diff) into ``out_dir``, print where, and load it.
+
+    ``defines`` set the scene's ``<default>`` parameters (``-D key=value``).
+    """
     os.makedirs(out_dir, exist_ok=True)
     path = os.path.join(out_dir, "scene.xml")
     written = doc.write(path, original)
     log("[%s] edited scene -> %s (edit: %s)" % (tag, written[0], written[-1]))
     try:
-        return load_scene(path), path
+        return load_scene(path, defines), path
     except UserError as exc:
         raise UserError("%s (the edit of %s)" % (exc, original.path)) from None
 
@@ -81,6 +84,8 @@ def add_render_options(p, default_exposure: float = 1.0) -> None:
     """Options every camera application shares."""
     p.add_argument("-o", "--output", default=None,
                    help="output folder (default: <scene>_<command> beside the scene)")
+    p.add_argument("-D", dest="defines", action="append", default=[], metavar="KEY=VALUE",
+                   help="set a <default> parameter of the scene (repeatable)")
     p.add_argument("--frames", default=None, metavar="A:B",
                    help="frames to render, python-slice style (default: all)")
     p.add_argument("--spp", type=int, default=0, help="samples per pixel (default: the sensor's)")
@@ -102,6 +107,11 @@ def apply_integrator_options(doc, args) -> None:
             xml_edit.set_child_param(integrator, "integer", "samples", args.samples)
     if getattr(args, "spp", 0) < 0:
         raise UserError("--spp must be at least 1")
+
+
+def defines(args) -> dict:
+    from ..commands.render import parse_defines
+    return parse_defines(getattr(args, "defines", []) or [])
 
 
 def output_dir(args, command: str) -> str:

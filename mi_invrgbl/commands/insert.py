@@ -54,7 +54,8 @@ def run(args):
         print("[insert] the scene's integrator cannot shade Gaussians: it now uses 'invrgbl'")
     sequence.apply_integrator_options(edited, args)
     out_dir = sequence.output_dir(args, "insert")
-    scene, _ = sequence.write_and_load(edited, doc, out_dir, "insert")
+    scene, _ = sequence.write_and_load(edited, doc, out_dir, "insert",
+                                         defines=sequence.defines(args))
     shape_id = obj.shape.get("id")
     bounds = insert.scene_bounds_without(scene, shape_id)
     for k, pose in enumerate(track):

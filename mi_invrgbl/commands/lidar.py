@@ -48,6 +48,8 @@ def add_parser(sub):
     p.add_argument("--seed", type=int, default=0, help="seed of the random drops")
     p.add_argument("-o", "--output", default=None,
                    help="output folder (default: <scene>_lidar beside the scene)")
+    p.add_argument("-D", dest="defines", action="append", default=[], metavar="KEY=VALUE",
+                   help="set a <default> parameter of the scene (repeatable)")
     p.add_argument("--frames", default=None, metavar="A:B",
                    help="poses to simulate, python-slice style (default: all)")
     p.set_defaults(run=run)
@@ -88,7 +90,8 @@ def run(args):
     print("[lidar] sensor %s: %d beams x %d azimuth steps; %d pose(s); intensity scale %g"
           % (spec.name, spec.height, spec.width, len(poses), scale))
     edited, ident = lidar_sim.lidar_doc(doc, spec, poses[0][1], args.lidar_model)
-    scene, _ = sequence.write_and_load(edited, doc, out_dir, "lidar")
+    scene, _ = sequence.write_and_load(edited, doc, out_dir, "lidar",
+                                       defines=sequence.defines(args))
     sensor = next(s for s in scene.sensors() if s.id() == ident)
     bounds = mi.ScalarBoundingBox3f()
     for s in scene.shapes():

@@ -98,7 +98,8 @@ def run(args):
                                        head_spec, cam_frames.camera_to_world(cameras_scene, first))
     sequence.apply_integrator_options(edited, args)
     out_dir = sequence.output_dir(args, "night")
-    scene, _ = sequence.write_and_load(edited, doc, out_dir, "night")
+    scene, _ = sequence.write_and_load(edited, doc, out_dir, "night",
+                                         defines=sequence.defines(args))
     frames = FrameSet(args.scene, scene, args.frames)
     hook = night.HeadlightHook(head_ids, frames)
     result = sequence.render_frames(scene, frames, out_dir, args.spp, hooks=[hook],

@@ -68,7 +68,8 @@ def run(args):
     edited = relight.relight_doc(doc, lighting)
     sequence.apply_integrator_options(edited, args)
     out_dir = sequence.output_dir(args, "relight")
-    scene, _ = sequence.write_and_load(edited, doc, out_dir, "relight")
+    scene, _ = sequence.write_and_load(edited, doc, out_dir, "relight",
+                                         defines=sequence.defines(args))
     frames = FrameSet(args.scene, scene, args.frames)
     result = sequence.render_frames(scene, frames, out_dir, args.spp, exposure=args.exposure,
                                     tag="relight")
