@@ -380,13 +380,13 @@ def transform_gaussians(shape, delta: np.ndarray) -> None:
     params = mi.traverse(shape)
     data = np.array(params["data"], np.float64).reshape(-1, 10)
     R, t = delta[:3, :3], delta[:3, 3]
-    data[:, :3] = data[:, :3] @ R.T + t
+    data[:, :3] = (R @ data[:, :3].T).T + t     # not data @ R.T: slow in numpy
     q = _rotation_to_quat_xyzw(R)
     qn = _quat_mul(np.broadcast_to(q, data[:, 6:10].shape), data[:, 6:10])
     data[:, 6:10] = qn / np.linalg.norm(qn, axis=1, keepdims=True)
     params["data"] = type(params["data"])(data.astype(np.float32).reshape(params["data"].shape))
     if "normal" in params:
-        n = np.array(params["normal"], np.float64).reshape(-1, 3) @ R.T
+        n = (R @ np.array(params["normal"], np.float64).reshape(-1, 3).T).T
         params["normal"] = type(params["normal"])(
             n.astype(np.float32).reshape(params["normal"].shape))
     params.update()

@@ -460,7 +460,7 @@ def _accumulate(src, state, opts, log):
     rimgs, methods, tables, world_points = [], [], [], []
     for i, (pts, inten) in enumerate(state["scans"]):
         R, t = poses[i][:3, :3], poses[i][:3, 3]
-        world = (pts.astype(np.float64) @ R.T + t)
+        world = ig.transform_points(pts, poses[i])
         world_points.append(np.hstack([world, inten[:, None]]).astype(np.float32))
         ri = range_image(pts, inten, width=W, n_beams=beams, beam_elevations=table)
         rimgs.append(ri)
@@ -472,7 +472,7 @@ def _accumulate(src, state, opts, log):
             if not o.active(i):
                 continue
             inv = np.linalg.inv(o.poses[i])
-            p_obj = world @ inv[:3, :3].T + inv[:3, 3]
+            p_obj = ig.transform_points(world, inv)
             inside = in_box(p_obj, o.half_extent) & (rng >= opts.min_range)
             if inside.any():
                 sensor_obj = inv[:3, :3] @ t + inv[:3, 3]
@@ -648,7 +648,7 @@ def _colours(state, opts, log):
             if o.active(i):
                 c = state["object_clouds"][o.name]["centers"]
                 T = o.poses[i]
-                clouds.append((o.name, c @ T[:3, :3].T + T[:3, 3]))
+                clouds.append((o.name, ig.transform_points(c, T)))
         pts = np.concatenate([c for _, c in clouds])
         uv, z, ok = ig.project(pts, w2c, K, (W, H))
         vis = ig.ColourAccumulator.visible(uv, z, ok, (W, H), block)

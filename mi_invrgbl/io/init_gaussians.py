@@ -210,12 +210,20 @@ def lidar_albedo(intensity, distance, cos, kind: str, reference_range: float = 2
 # Colours from camera images
 # ----------------------------------------------------------------------------
 
+def transform_points(points, T) -> np.ndarray:
+    """(N, 3) points through a 4x4 transform, float64. Written as ``R @ p.T``:
+    numpy's ``p @ R.T`` with an inner size of 3 is ~25x slower."""
+    T = np.asarray(T, np.float64)
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    return (T[:3, :3] @ p.T).T + T[:3, 3]
+
+
 def project(points_world, world_to_cam, K, size):
     """Pixel coordinates (N, 2), depth (N,) and in-image mask of world points
     in a camera (x right, y down, z forward; K in the KITTI/OpenCV pixel-centre
     convention)."""
     W, H = size
-    p = np.asarray(points_world, np.float64) @ world_to_cam[:3, :3].T + world_to_cam[:3, 3]
+    p = transform_points(points_world, world_to_cam)
     z = p[:, 2]
     front = z > 0.5
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -262,9 +270,10 @@ class ColourAccumulator:
         w = 1.0 / np.maximum(depth[sel], 1.0)
         target = which[sel]
         rgb = image_linear[py, px].astype(np.float64)
-        np.add.at(self.weight, target, w)
+        n = len(self.weight)
+        self.weight += np.bincount(target, weights=w, minlength=n)
         for c in range(3):
-            np.add.at(self.sum[:, c], target, w * rgb[:, c])
+            self.sum[:, c] += np.bincount(target, weights=w * rgb[:, c], minlength=n)
 
     def mean(self, default: float = 0.5) -> np.ndarray:
         out = np.full(self.sum.shape, default, np.float64)
