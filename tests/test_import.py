@@ -494,3 +494,26 @@ def test_cli(street, tmp_path, capsys):
     assert main(["import", str(tmp_path / "missing"), "-o", str(tmp_path / "x" / "s.xml")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "missing" in err[0]
+
+
+def test_cli_warnings_are_one_line(street_copy, tmp_path, capsys):
+    from mi_invrgbl.cli import main
+    (street_copy / "sequences" / "00" / "velodyne" / "000001.bin").write_bytes(b"")
+    assert main(["import", str(street_copy), "-o", str(tmp_path / "w" / "scene.xml"),
+                 "--frames", "0:3", "--max-points", "5000", "--azimuth-steps", "256"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err and all(line.startswith("mi-invrgbl import: warning: ") for line in err)
+    assert any("000001.bin" in line and "skipped" in line for line in err)
+
+
+@pytest.mark.slow
+def test_full_kitti_excerpt(kitti_dir, tmp_path):
+    """All 40 frames at 1/4 image size with the default 8e5 Gaussians
+    (about 25 s on 2 cores)."""
+    rep = import_scene(kitti_dir, tmp_path / "k" / "scene.xml",
+                       ImportOptions(image_scale=0.25), log=print)
+    print(rep.times, rep.counts)
+    frames = Frames.load(rep.scene)
+    assert len(frames) == 40 and sum(f.held_out for f in frames) == 8
+    assert rep.counts["background_gaussians"] == 800_000
+    assert rep.times["total"] < 180

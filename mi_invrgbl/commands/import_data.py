@@ -10,7 +10,8 @@ synthetic street's ``gt/``); the layout is detected. The output follows
 
 from __future__ import annotations
 
-from ..errors import UserError
+import sys
+import warnings
 
 
 def add_parser(subparsers):
@@ -73,9 +74,16 @@ def options_from_args(args):
         verify=not args.no_verify)
 
 
+def _one_line_warning(message, category, filename, lineno, file=None, line=None):
+    print("mi-invrgbl import: warning: %s" % message, file=sys.stderr)
+
+
 def run(args) -> int:
     from ..io.importer import import_scene
-    report = import_scene(args.data, args.output, options_from_args(args))
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", UserWarning)
+        warnings.showwarning = _one_line_warning
+        report = import_scene(args.data, args.output, options_from_args(args))
     print("[import] step times:")
     for name, t in report.times.items():
         print("  %-12s %8.2f s" % (name, t))
