@@ -2,7 +2,8 @@
 # One-command set-up on a fresh Debian machine:
 #   1. Debian's libllvm19 (Dr.Jit's LLVM backend; Debian 12's default 14/15 abort),
 #   2. a virtual environment at .venv holding mi-invrgbl and its test tools,
-#   3. the main job on the bundled example scene (skip with --no-run).
+#   3. the main job (skip with --no-run): render the example scene, generate the
+#      synthetic street, import it, fit it and evaluate the fit.
 set -euo pipefail
 cd "$(dirname "$0")"
 
@@ -23,4 +24,8 @@ echo "[setup] installed mi-invrgbl into .venv"
 
 if [ "${1:-}" != "--no-run" ]; then
   .venv/bin/mi-invrgbl render scenes/street.xml -o out/street
+  [ -f out/street_data/gt/trajectory.json ] || .venv/bin/mi-invrgbl make-scene street out/street_data
+  [ -f out/street_fit/scene.xml ] || .venv/bin/mi-invrgbl import out/street_data -o out/street_fit/scene.xml --max-points 60000
+  .venv/bin/mi-invrgbl fit out/street_fit/scene.xml --stage1 100 --stage2 150
+  .venv/bin/mi-invrgbl eval out/street_fit/fit
 fi

@@ -34,6 +34,9 @@ def add_parser(sub):
                    help="LiDAR reflectance: keep the specular lobe only if it lowers held-out error (auto)")
     p.add_argument("--no-response", action="store_true",
                    help="keep the paper's cos/d^2 LiDAR response instead of estimating it")
+    p.add_argument("--per-frame-visibility", action="store_true",
+                   help="trace sky/sun visibility per frame so moving objects' shadows move "
+                        "(G x M shadow rays per frame; default: once, objects at their first pose)")
     p.add_argument("--max-gaussians", type=int, default=800000, help="densification cap")
     p.add_argument("--checkpoint-every", type=int, default=50)
     p.add_argument("--eval-every", type=int, default=50)
@@ -58,7 +61,8 @@ def config_from_args(args):
                      sh_order=args.sh_order, lidar_model=args.lidar_model,
                      fit_response=not args.no_response, max_gaussians=args.max_gaussians,
                      checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
-                     resume=args.resume, seed=args.seed)
+                     resume=args.resume, seed=args.seed,
+                     per_frame_visibility=args.per_frame_visibility)
 
 
 def run(args):

@@ -56,7 +56,8 @@ class FitConfig:
     densify_every: int = 50
     densify_until: float = 0.7
     prune_opacity: float = 0.02
-    densify_grad: float = 2e-4
+    densify_grad: float = 1e-7
+    densify_fraction: float = 0.02
     split_scale: float = 0.3
     max_gaussians: int = 800000
     stage1_range: float = 1.0
@@ -72,6 +73,7 @@ class FitConfig:
     lobe_iterations: int = 60
     sun_candidates: int = 48
     sun_gaussians: int = 20000
+    per_frame_visibility: bool = False
 
     def to_json(self):
         d = asdict(self)

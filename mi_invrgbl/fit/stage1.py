@@ -148,7 +148,12 @@ class Stage1:
             if acc is not None and acc[0].shape[0] == len(cloud):
                 mean_grad = acc[0] / np.maximum(acc[1], 1)
                 budget = max(0, cfg.max_gaussians - total_now)
-                cand = np.nonzero(keep & (mean_grad > cfg.densify_grad))[0]
+                # The largest positional gradients (top ``densify_fraction``),
+                # as long as they are not negligible in absolute terms.
+                seen = mean_grad[acc[1] > 0]
+                cut = max(cfg.densify_grad, float(np.percentile(seen, 100 * (1 - cfg.densify_fraction)))
+                          if seen.size else np.inf)
+                cand = np.nonzero(keep & (mean_grad >= cut))[0]
                 if budget and cand.size:
                     cand = cand[np.argsort(-mean_grad[cand])][: min(budget, cand.size)]
                     grow[cand] = True

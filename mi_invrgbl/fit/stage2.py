@@ -45,7 +45,12 @@ class FrozenScene:
         cfg = ctx.config
         model = ctx.model
         self.camera, self.lidar, self.caches, self.geometry = {}, {}, {}, {}
-        dynamic = any(n.dynamic for n in model.nodes.values())
+        # Per-frame visibility (objects' shadows move with them) costs G x M
+        # shadow rays per frame; by default one cache is shared and lighting is
+        # evaluated with the objects at their first-frame placement.
+        dynamic = any(n.dynamic for n in model.nodes.values()) and cfg.per_frame_visibility
+        self.per_frame = dynamic
+        self.first = frames[0] if frames else None
         shared = LightingCache()
         with dr.suspend_grad():
             for frame in frames:
@@ -77,6 +82,8 @@ class FrozenScene:
         """Virtual nodes of ``frame``: frozen geometry + the material variables."""
         out = []
         model = self.ctx.model
+        if not self.per_frame:
+            frame = self.first
         for name, node in model.nodes.items():
             data, opac = self.geometry[frame.index][name]
             pose = frame.poses.get(name)
