@@ -53,8 +53,17 @@ def srgb_psnr(a, b):
     return psnr(np.clip(a, 0, 1), np.clip(b, 0, 1), srgb=True)
 
 
+_FLOORS = {}
+
+
 def noise_floor(street, frame):
     """PSNR of an independent render of the time-B scene against the generator's."""
+    if (str(street), frame) not in _FLOORS:
+        _FLOORS[(str(street), frame)] = _noise_floor(street, frame)
+    return _FLOORS[(str(street), frame)]
+
+
+def _noise_floor(street, frame):
     from mi_invrgbl.apps.frames import FrameSet
     path = str(street / "gt" / "scene_time_b.xml")
     scene = mi.load_file(path)

@@ -275,9 +275,5 @@ class TrackHook:
 
 def scene_bounds_without(scene, shape_id: str):
     """Bounding box of every shape but ``shape_id`` (the target scene's extent)."""
-    import mitsuba as mi
-    bbox = mi.ScalarBoundingBox3f()
-    for s in scene.shapes():
-        if s.id() != shape_id:
-            bbox.expand(s.bbox())
-    return bbox
+    from .posing import scene_bounds
+    return scene_bounds(scene, exclude=shape_id)

@@ -105,6 +105,26 @@ def check_inside(position, bbox, what: str, margin: float = 2.0) -> None:
                                                  hi[1] - margin, lo[2] + margin, hi[2] - margin)))
 
 
+def scene_bounds(scene, exclude: str | None = None):
+    """Bounding box of a scene's shapes (all but ``exclude``), from their vertices.
+
+    ``Shape.bbox()`` is not enough: Mitsuba 3.9 merges meshes that share a
+    BSDF into one and keeps only the first one's box.
+    """
+    import mitsuba as mi
+    bbox = mi.ScalarBoundingBox3f()
+    for s in scene.shapes():
+        if exclude is not None and s.id() == exclude:
+            continue
+        if isinstance(s, mi.Mesh) and s.vertex_count() > 0:
+            v = np.array(s.vertex_positions_buffer(), np.float64).reshape(-1, 3)
+            bbox.expand(mi.ScalarBoundingBox3f(mi.ScalarPoint3f(*v.min(axis=0)),
+                                               mi.ScalarPoint3f(*v.max(axis=0))))
+        else:
+            bbox.expand(s.bbox())
+    return bbox
+
+
 # ------------------------------------------------------------------ moving
 
 

@@ -26,6 +26,10 @@ from ..errors import UserError
 
 #: Names of ``<string>`` parameters that hold a file path.
 PATH_PARAMETERS = ("filename", "rays")
+#: Of those, the ones Mitsuba resolves against the XML's folder. The ``lidar``
+#: sensor opens ``rays`` itself (relative to the working directory), so that
+#: one stays absolute in written files.
+RELATIVE_PARAMETERS = ("filename",)
 #: Emitter types that make up a scene's sky and sun (replaced by relighting).
 SKY_TYPES = ("shsun", "constant", "envmap", "sunsky", "sky", "sun", "directional")
 
@@ -66,7 +70,8 @@ class SceneDoc:
             folder = os.path.abspath(folder)
             for elem in _path_elements(root):
                 value = elem.get("value")
-                if os.path.isabs(value) and _share_folder(value, folder):
+                if (elem.get("name") in RELATIVE_PARAMETERS and os.path.isabs(value)
+                        and _share_folder(value, folder)):
                     elem.set("value", os.path.relpath(value, folder))
         ET.indent(root, space="    ")
         return ('<?xml version="1.0" encoding="utf-8"?>\n'

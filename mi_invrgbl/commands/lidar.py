@@ -17,7 +17,7 @@ import numpy as np
 
 from ..apps import lidar_sim, sequence, video
 from ..apps.frames import FrameSet, parse_selection
-from ..apps.posing import check_inside, parse_pose, read_trajectory
+from ..apps.posing import check_inside, parse_pose, read_trajectory, scene_bounds
 from ..apps.xml_edit import SceneDoc
 from ..errors import UserError
 
@@ -93,9 +93,7 @@ def run(args):
     scene, _ = sequence.write_and_load(edited, doc, out_dir, "lidar",
                                        defines=sequence.defines(args))
     sensor = next(s for s in scene.sensors() if s.id() == ident)
-    bounds = mi.ScalarBoundingBox3f()
-    for s in scene.shapes():
-        bounds.expand(s.bbox())
+    bounds = scene_bounds(scene)
     for k, pose in poses:
         check_inside(pose[:3, 3], bounds, "pose %d" % k)
     # At the scene's own frames, moving objects go where they were then.
