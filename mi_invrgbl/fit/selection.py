@@ -156,8 +156,19 @@ def fit_sh_orders(directions, radiance, max_order=3, seed=0, tolerance=0.02):
         ref = radiance[te] if te.size else radiance[tr]
         errors[order] = float(np.sqrt(np.mean((pred - ref) ** 2)))
         coeffs[order] = c
-    best = min(errors.values())
-    chosen = min(o for o, e in errors.items() if e <= best * (1 + tolerance) + 1e-9)
+    # A camera sees a narrow band of sky directions; higher orders fitted to
+    # it can explode towards the zenith, which would flood every Gaussian
+    # with light. Orders whose sky anywhere on the upper hemisphere exceeds
+    # 3x the brightest observed sky (or goes negative) are rejected.
+    upper = hemisphere_candidates(256, 0.0)
+    top = float(np.max(radiance)) if radiance.size else 1.0
+    sane = {}
+    for order, c in coeffs.items():
+        sky = sh_basis_numpy(upper, order) @ c
+        sane[order] = bool(np.max(sky) <= 3 * top and np.min(sky) >= -0.05 * top)
+    ok = {o: e for o, e in errors.items() if sane[o]} or {0: errors[0]}
+    best = min(ok.values())
+    chosen = min(o for o, e in ok.items() if e <= best * (1 + tolerance) + 1e-9)
     return chosen, errors, coeffs
 
 

@@ -99,9 +99,9 @@ class Stage1:
         total = mi.Float(0.0)
         for v in terms.values():
             total = total + v
-        ok = safe_step(self.opt, total, ctx.log, ctx.lr_state, "stage-1 iteration %d" % it)
+        ok = safe_step(self.opt, total, ctx.log, ctx.lr_state, "stage-1 iteration %d" % it,
+                       before_step=self._accumulate_gradients)
         if ok:
-            self._accumulate_gradients()
             self._clamp()
         return float(total[0]), {k: float(v[0]) for k, v in terms.items()}, ok
 

@@ -32,7 +32,7 @@ def grads_finite(opt) -> bool:
     return True
 
 
-def safe_step(opt, loss, log, lr_scale_state: dict, what="step"):
+def safe_step(opt, loss, log, lr_scale_state: dict, what="step", before_step=None):
     """Back-propagate ``loss`` and step, unless the loss or a gradient is not
     finite: then nothing changes, learning rates are halved and False returned.
     """
@@ -46,6 +46,8 @@ def safe_step(opt, loss, log, lr_scale_state: dict, what="step"):
         for key in opt.keys():
             dr.clear_grad(opt[key])
         return False
+    if before_step is not None:
+        before_step()  # e.g. read gradients, which the step clears
     opt.step()
     return True
 
