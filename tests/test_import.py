@@ -55,11 +55,8 @@ def imported(street, tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def kitti_imported(tmp_path_factory):
-    from conftest import SHARED
-    data = SHARED / "data" / "kitti-raw-excerpt"
-    if not data.exists():
-        pytest.skip("shared KITTI excerpt not present")
+def kitti_imported(kitti_dir, tmp_path_factory):
+    data = kitti_dir
     out = tmp_path_factory.mktemp("import_kitti") / "kitti" / "scene.xml"
     report = import_scene(data, out, ImportOptions(frames="0:3", image_scale=0.25,
                                                    max_points=20000, azimuth_steps=1024),
