@@ -15,3 +15,15 @@ def test_bench_render_quick():
     timed = [r for r in rows if "task" in r]
     assert len(timed) == 5
     assert all(r["t"] > 0 and r["hits"] > 0 for r in timed)
+
+
+@pytest.mark.bench
+def test_bench_fit_quick():
+    import bench_fit
+    rows = bench_fit.main(["--quick", "--runs", "3", "--ref-runs", "2"])
+    timed = {r["row"]: r for r in rows if "row" in r}
+    assert set(timed) == {"stage 1", "stage 2", "full re-trace", "hits re-traced", "plugin re-render"}
+    assert all(r["t"] > 0 for r in timed.values())
+    # Stage 2 works on the frozen caches: it traces no ray; the references do.
+    assert timed["stage 2"]["traced"] == 0
+    assert timed["full re-trace"]["traced"] > timed["hits re-traced"]["traced"] > 0
