@@ -3,7 +3,8 @@
 Three kinds of scene are understood, recognised by the files next to the
 original XML:
 
-``frames.json`` (an imported or fitted scene, see ``docs/scene_format.md``)
+``frames.json`` (an imported scene, or its fit in ``DIR/fit/``, which uses
+``DIR/frames.json``; see ``docs/scene_format.md``)
     Frame ``i`` is rendered by the sensor ``camera_NNNN``; dynamic objects are
     placed with :func:`mi_invrgbl.scene_graph.set_frame`.
 ``trajectory.json`` (the synthetic street's ground truth, ``gt/scene_*.xml``)
@@ -42,6 +43,15 @@ def is_lidar(sensor) -> bool:
     return type(sensor).__name__ == "LidarSensor" or sensor.class_name() == "LidarSensor"
 
 
+def find_frames_json(scene_path: str) -> str | None:
+    """``frames.json`` of a scene (beside it, or one folder up for ``DIR/fit/``), or None."""
+    from ..scene_graph import Frames
+    try:
+        return str(Frames.find(os.path.abspath(scene_path)))
+    except UserError:
+        return None
+
+
 def parse_selection(text: str | None, count: int) -> list[int]:
     """``--frames`` (``A``, ``A:B``, ``A:B:S``, python-slice semantics) -> positions."""
     if not text:
@@ -67,7 +77,7 @@ class FrameSet:
     def __init__(self, scene_path: str, scene, selection: str | None = None):
         self.scene_path = os.path.abspath(scene_path)
         folder = os.path.dirname(self.scene_path)
-        self.frames_json = os.path.join(folder, "frames.json")
+        self.frames_json = find_frames_json(self.scene_path)
         self.trajectory_json = os.path.join(folder, "trajectory.json")
         self.lights_json = os.path.join(folder, "lights.json")
         sensors = list(scene.sensors())
@@ -75,15 +85,17 @@ class FrameSet:
         self._params = None
         self._poser = None
         self._scene_graph = None
-        if os.path.isfile(self.frames_json):
+        self.all = []
+        if self.frames_json is not None:
             self.kind = "frames.json"
             self._read_frames_json(ids)
-        elif os.path.isfile(self.trajectory_json) and "sensor" in ids:
-            self.kind = "synthetic"
-            self._read_trajectory(ids)
-        else:
-            self.kind = "sensors"
-            self.all = [Frame(k, ids[k], k) for k, s in enumerate(sensors) if not is_lidar(s)]
+        if not self.all:   # not an imported scene, or not one of its sensors
+            if os.path.isfile(self.trajectory_json) and "sensor" in ids:
+                self.kind = "synthetic"
+                self._read_trajectory(ids)
+            else:
+                self.kind = "sensors"
+                self.all = [Frame(k, ids[k], k) for k, s in enumerate(sensors) if not is_lidar(s)]
         if not self.all:
             raise UserError("%s: the scene has no camera sensor to render" % scene_path)
         self.frames = [self.all[k] for k in parse_selection(selection, len(self.all))]

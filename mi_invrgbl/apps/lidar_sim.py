@@ -136,9 +136,9 @@ def _custom_sensor(path, azimuth_steps, out_dir, near, far):
 
 def recorded_sensor(scene_path: str) -> dict | None:
     """The LiDAR an imported/fitted or synthetic scene was recorded with (or None)."""
-    folder = os.path.dirname(os.path.abspath(scene_path))
-    frames = os.path.join(folder, "frames.json")
-    if os.path.isfile(frames):
+    from .frames import find_frames_json
+    frames = find_frames_json(scene_path)
+    if frames is not None:
         with open(frames) as f:
             lidar = json.load(f).get("lidar", {})
         if lidar.get("elevations_deg") and lidar.get("azimuth_steps"):

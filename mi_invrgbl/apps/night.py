@@ -104,8 +104,9 @@ def recorded_streetlights(scene_path: str):
     """Night lamps of the synthetic street, if this scene is (or was fitted from) one."""
     folder = os.path.dirname(os.path.abspath(scene_path))
     candidates = [os.path.join(folder, "lights.json")]
-    frames_json = os.path.join(folder, "frames.json")
-    if os.path.isfile(frames_json):
+    from .frames import find_frames_json
+    frames_json = find_frames_json(scene_path)
+    if frames_json is not None:
         try:
             with open(frames_json) as f:
                 gt = json.load(f).get("ground_truth", {}).get("dir")
