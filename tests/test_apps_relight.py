@@ -13,6 +13,7 @@ noise floor 29.0 dB, unrelit time A vs time B 16.7 dB.
 from __future__ import annotations
 
 import datetime as dt
+import json
 import math
 import os
 
@@ -216,3 +217,17 @@ def test_scene_without_sun_needs_an_irradiance(tmp_path):
         new_lighting(overcast, elevation=30, azimuth=0, log=lambda *a: None)
     lit = new_lighting(overcast, elevation=30, azimuth=0, sun_irradiance=[3.0], log=lambda *a: None)
     assert lit.has_sun and lit.sun_irradiance == pytest.approx([3, 3, 3])
+
+
+def test_edited_scene_keeps_the_originals_frames(street, tmp_path):
+    """An application's output is a valid input: relighting it again still knows the frames."""
+    first, second = tmp_path / "first", tmp_path / "second"
+    run_args = ["--spp", "4", "--frames", "1"]
+    assert main(["relight", str(street / "gt" / "scene_time_a.xml"), "-o", str(first),
+                 "--light-from", str(street / "gt" / "scene_time_b.xml")] + run_args) == 0
+    assert main(["relight", str(first / "scene.xml"), "-o", str(second), "--sky-scale", "1"]
+                + run_args) == 0
+    assert json.loads((second / "source.json").read_text())["scene"] == \
+        str(street / "gt" / "scene_time_a.xml")
+    a, b = rgb(first / "frame_0001.exr"), rgb(second / "frame_0001.exr")
+    assert srgb_psnr(a, b) > 40     # same frame-1 camera and car, same lighting

@@ -14,7 +14,10 @@ neither (any other scene)
     Every camera sensor (not ``lidar``) is one frame, in file order.
 
 Applications render edited copies of a scene, so the frames are looked up
-beside the *original* file and applied to the loaded *edited* scene.
+beside the *original* file and applied to the loaded *edited* scene. Each
+edited scene is written with a ``source.json`` naming its original, so the
+output of one application is a valid input of the next (relight, then insert)
+and keeps the original's frames, lamps and LiDAR.
 """
 
 from __future__ import annotations
@@ -43,11 +46,39 @@ def is_lidar(sensor) -> bool:
     return type(sensor).__name__ == "LidarSensor" or sensor.class_name() == "LidarSensor"
 
 
+#: Written beside an edited scene: {"scene": the original scene it was made from}.
+SOURCE_FILE = "source.json"
+
+
+def origin_scene(scene_path: str) -> str:
+    """The original scene an application's output was made from (or ``scene_path``)."""
+    path = os.path.abspath(scene_path)
+    for _ in range(32):   # a chain of edits; a loop would be a hand-made mistake
+        source = os.path.join(os.path.dirname(path), SOURCE_FILE)
+        if not os.path.isfile(source):
+            break
+        try:
+            with open(source) as f:
+                previous = json.load(f).get("scene")
+        except (OSError, ValueError):
+            break
+        if not previous or os.path.abspath(previous) == path or not os.path.isfile(previous):
+            break
+        path = os.path.abspath(previous)
+    return path
+
+
+def write_origin(out_dir: str, scene_path: str) -> None:
+    """Record which scene an edited copy in ``out_dir`` was made from."""
+    with open(os.path.join(out_dir, SOURCE_FILE), "w") as f:
+        json.dump({"scene": origin_scene(scene_path)}, f, indent=1)
+
+
 def find_frames_json(scene_path: str) -> str | None:
     """``frames.json`` of a scene (beside it, or one folder up for ``DIR/fit/``), or None."""
     from ..scene_graph import Frames
     try:
-        return str(Frames.find(os.path.abspath(scene_path)))
+        return str(Frames.find(origin_scene(scene_path)))
     except UserError:
         return None
 
@@ -75,7 +106,7 @@ class FrameSet:
     """Frames of a scene (see the module docstring) and how to pose each."""
 
     def __init__(self, scene_path: str, scene, selection: str | None = None):
-        self.scene_path = os.path.abspath(scene_path)
+        self.scene_path = origin_scene(scene_path)
         folder = os.path.dirname(self.scene_path)
         self.frames_json = find_frames_json(self.scene_path)
         self.trajectory_json = os.path.join(folder, "trajectory.json")

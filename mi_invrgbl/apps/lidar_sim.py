@@ -156,7 +156,8 @@ def recorded_sensor(scene_path: str) -> dict | None:
 
 def synthetic_info(scene_path: str) -> dict | None:
     """The generator's trajectory.json beside a synthetic ground-truth scene (or None)."""
-    path = os.path.join(os.path.dirname(os.path.abspath(scene_path)), "trajectory.json")
+    from .frames import origin_scene
+    path = os.path.join(os.path.dirname(origin_scene(scene_path)), "trajectory.json")
     if not os.path.isfile(path):
         return None
     with open(path) as f:
@@ -175,8 +176,9 @@ def default_intensity_scale(scene_path: str) -> float:
 def lidar_integrator(doc: SceneDoc, model: str | None) -> tuple[ET.Element, str]:
     """The ``lidar_return`` integrator to use, and where its parameters come from."""
     import copy
+    from .frames import origin_scene
     own = doc.integrator()
-    fitted = os.path.join(doc.folder, "scene_lidar.xml")
+    fitted = os.path.join(os.path.dirname(origin_scene(doc.path)), "scene_lidar.xml")
     if own is not None and own.get("type") == "lidar_return":
         elem, source = copy.deepcopy(own), doc.path
     elif os.path.isfile(fitted) and os.path.abspath(fitted) != doc.path:
@@ -213,6 +215,7 @@ def true_lidar_materials(doc: SceneDoc, materials_json: str) -> int:
     """
     with open(materials_json) as f:
         table = json.load(f)
+    folder = os.path.dirname(os.path.abspath(materials_json))   # texture paths are relative to it
     replaced = 0
     for name, mat in table.get("materials", {}).items():
         elem = doc.by_id("mat_%s" % name)
@@ -220,12 +223,12 @@ def true_lidar_materials(doc: SceneDoc, materials_json: str) -> int:
             continue
         children = []
         if mat.get("albedo_texture"):
-            children.append(_bitmap("albedo", os.path.join(doc.folder, mat["albedo_texture"]), False))
+            children.append(_bitmap("albedo", os.path.join(folder, mat["albedo_texture"]), False))
         else:
             children.append(xml_edit.rgb("albedo", mat["albedo"]))
         children.append(xml_edit.param("float", "roughness", max(float(mat["roughness"]), 1e-3)))
         if mat.get("lidar_texture"):
-            children.append(_bitmap("lidar_albedo", os.path.join(doc.folder, mat["lidar_texture"]), True))
+            children.append(_bitmap("lidar_albedo", os.path.join(folder, mat["lidar_texture"]), True))
         else:
             children.append(xml_edit.param("float", "lidar_albedo", mat["lidar_albedo"]))
         children.append(xml_edit.param("float", "f0", mat.get("f0", 0.04)))
@@ -255,7 +258,8 @@ def lidar_doc(doc: SceneDoc, spec: SensorSpec, first_pose, model=None, log=print
     fit_beam_gains(integrator, spec.height, log)
     out.set_integrator(integrator)
     log("[lidar] LiDAR response from %s" % source)
-    materials = os.path.join(doc.folder, "materials.json")
+    from .frames import origin_scene
+    materials = os.path.join(os.path.dirname(origin_scene(doc.path)), "materials.json")
     if os.path.isfile(materials):
         n = true_lidar_materials(out, materials)
         if n:

@@ -102,7 +102,8 @@ def night_lighting(base: Lighting | None, sky_scale: float, sky_radiance=None) -
 
 def recorded_streetlights(scene_path: str):
     """Night lamps of the synthetic street, if this scene is (or was fitted from) one."""
-    folder = os.path.dirname(os.path.abspath(scene_path))
+    from .frames import origin_scene
+    folder = os.path.dirname(origin_scene(scene_path))
     candidates = [os.path.join(folder, "lights.json")]
     from .frames import find_frames_json
     frames_json = find_frames_json(scene_path)

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..errors import UserError
 from . import video
-from .frames import FrameSet
+from .frames import FrameSet, write_origin
 
 
 def load_scene(path: str, defines=None):
@@ -73,6 +73,7 @@ def write_and_load(doc, original, out_dir: str, tag: str, log=print, defines=Non
     os.makedirs(out_dir, exist_ok=True)
     path = os.path.join(out_dir, "scene.xml")
     written = doc.write(path, original)
+    write_origin(out_dir, original.path)
     log("[%s] edited scene -> %s (edit: %s)" % (tag, written[0], written[-1]))
     try:
         return load_scene(path, defines), path
