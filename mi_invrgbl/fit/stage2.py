@@ -259,7 +259,9 @@ class Stage2:
             elif k == "roughness":
                 self.opt[key] = dr.clip(v, 0.02, 1.0)
             elif k == "sun_irradiance":
-                self.opt[key] = dr.maximum(v, 0.0)
+                # Never exactly 0: shsun would then drop the sun (has_sun), the
+                # lighting cache key would change and the sun could not come back.
+                self.opt[key] = dr.maximum(v, 1e-4)
             elif k == "beam_gains":
                 self.opt[key] = dr.maximum(v, 1e-4)
             elif k in ("range_exponent", "angle_exponent"):
