@@ -250,11 +250,9 @@ def replace_lighting(doc: SceneDoc, lighting: Lighting, comment: str = "") -> No
 
     Other emitters (spot, point, area lights, the LiDAR's laser) stay.
     """
-    old = sky_emitters(doc)
-    ident = "sky"
-    for e in old:
+    for e in sky_emitters(doc):
         doc.remove(e)
-    ident = doc.unique_id(ident)
+    ident = doc.unique_id("sky")
     doc.add(lighting.emitter_element(ident), comment or "sky + sun: %s" % lighting.describe())
 
 

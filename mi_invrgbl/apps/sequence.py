@@ -107,7 +107,7 @@ def apply_integrator_options(doc, args) -> None:
         if integrator is not None and integrator.get("type") == "invrgbl":
             xml_edit.set_child_param(integrator, "integer", "samples", args.samples)
     if getattr(args, "spp", 0) < 0:
-        raise UserError("--spp must be at least 1")
+        raise UserError("--spp must be at least 1 (or 0: the sensor's own count)")
 
 
 def defines(args) -> dict:
