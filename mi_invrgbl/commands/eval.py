@@ -43,9 +43,11 @@ import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import drjit as dr
 import numpy as np
 
 from ..errors import UserError
+from ..scene_graph import set_frame
 
 #: PSNR reported for identical images (MSE = 0).
 PSNR_CAP = 100.0
@@ -268,7 +270,7 @@ def place_frame(scene, frames, k):
     loaded at that pose). Harmless once ``set_frame`` does this itself.
     """
     import mitsuba as mi
-    cam, lidar = set_frame_fn()(scene, frames, k)
+    cam, lidar = set_frame(scene, frames, k)
     if frames.objects:
         params = mi.traverse(scene)
         changed = False
@@ -280,11 +282,6 @@ def place_frame(scene, frames, k):
         if changed:
             params.update()
     return cam, lidar
-
-
-def set_frame_fn():
-    from ..scene_graph import set_frame
-    return set_frame
 
 
 def _find_sky(scene):
@@ -305,7 +302,7 @@ class SkySwap:
 
     def set(self, sky_radiance, sun_direction, sun_irradiance):
         from ..plugins.sh import Y0
-        n = dr_width(self.params["sh"])
+        n = dr.width(self.params["sh"])
         sh = np.zeros(n, np.float32)
         sh[:3] = np.asarray(sky_radiance, np.float64) / Y0
         self.params["sh"] = type(self.params["sh"])(sh)
@@ -319,11 +316,6 @@ class SkySwap:
         for k, v in self.saved.items():
             self.params[k] = v
         self.params.update()
-
-
-def dr_width(x):
-    import drjit as dr
-    return dr.width(x)
 
 
 # ----------------------------------------------------------------------------
