@@ -373,11 +373,37 @@ def _rotation_to_quat_xyzw(R) -> np.ndarray:
     return np.array([q[1], q[2], q[3], q[0]])
 
 
-def transform_gaussians(shape, delta: np.ndarray) -> None:
-    """Apply a rigid 4x4 transform to a ``gaussians`` shape's parameters."""
+class _ShapeParams:
+    """The scene-level parameters of one shape under its own key names.
+
+    Updating through ``mi.traverse(shape)`` changes the shape but not the
+    scene's acceleration structure (Mitsuba 3.9.1): rays would still hit the
+    old positions. Going through ``mi.traverse(scene)`` rebuilds it.
+    """
+
+    def __init__(self, scene_params, name):
+        self.p, self.name = scene_params, name
+
+    def __contains__(self, key):
+        return self.name + "." + key in self.p
+
+    def __getitem__(self, key):
+        return self.p[self.name + "." + key]
+
+    def __setitem__(self, key, value):
+        self.p[self.name + "." + key] = value
+
+    def update(self):
+        self.p.update()
+
+
+def transform_gaussians(shape, delta: np.ndarray, scene=None) -> None:
+    """Apply a rigid 4x4 transform to a ``gaussians`` shape's parameters
+    (pass ``scene`` so that its acceleration structure follows)."""
     import mitsuba as mi
 
-    params = mi.traverse(shape)
+    params = _ShapeParams(mi.traverse(scene), shape.id()) if scene is not None \
+        else mi.traverse(shape)
     data = np.array(params["data"], np.float64).reshape(-1, 10)
     R, t = delta[:3, :3], delta[:3, 3]
     data[:, :3] = (R @ data[:, :3].T).T + t     # not data @ R.T: slow in numpy
@@ -413,7 +439,7 @@ def set_frame(scene, frames: Frames, i: int):
             now = frames[0].objects.get(name, target)
         delta = target @ np.linalg.inv(now)
         if not np.allclose(delta, np.eye(4), atol=1e-9):
-            transform_gaussians(shape, delta)
+            transform_gaussians(shape, delta, scene)
         current[name] = target
     return _find_sensor(scene, record.camera), _find_sensor(scene, record.lidar)
 
