@@ -19,7 +19,7 @@ from .relight import _floats
 
 def add_parser(sub):
     p = sub.add_parser("insert", help="insert a fitted node or a mesh into a scene and render it",
-                       description=__doc__)
+                       description=__doc__.replace("``", ""))
     p.add_argument("scene", help="target Mitsuba XML scene")
     p.add_argument("--object", required=True, metavar="OBJ",
                    help="OTHER.xml:NODE, mesh.obj, mesh.ply or gaussians.ply")

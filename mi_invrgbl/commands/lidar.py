@@ -24,7 +24,7 @@ from ..errors import UserError
 
 def add_parser(sub):
     p = sub.add_parser("lidar", help="simulate LiDAR sweeps (KITTI .bin + range-image EXR) from new poses",
-                       description=__doc__)
+                       description=__doc__.replace("``", ""))
     p.add_argument("scene", help="Mitsuba XML scene (fitted, imported, or any scene of our plugins)")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--pose", action="append", default=None, metavar="X,Y,Z[,YAW]",

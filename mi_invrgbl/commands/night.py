@@ -18,7 +18,7 @@ from .relight import _floats
 
 def add_parser(sub):
     p = sub.add_parser("night", help="render a scene at night with headlights and streetlights",
-                       description=__doc__)
+                       description=__doc__.replace("``", ""))
     p.add_argument("scene", help="Mitsuba XML scene (fitted, imported, or any scene of our plugins)")
     g = p.add_argument_group("sky")
     g.add_argument("--sky-scale", type=float, default=0.02,

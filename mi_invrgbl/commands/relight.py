@@ -23,7 +23,7 @@ def _floats(text):
 
 def add_parser(sub):
     p = sub.add_parser("relight", help="render a scene under a new sun and sky (moving shadows)",
-                       description=__doc__)
+                       description=__doc__.replace("``", ""))
     p.add_argument("scene", help="Mitsuba XML scene (fitted, imported, or any scene of our plugins)")
     g = p.add_argument_group("new lighting (one of)")
     g.add_argument("--sun-elevation", type=float, default=None, metavar="DEG",
