@@ -192,7 +192,10 @@ def trace(scene, rays, max_hits=64, min_transmittance=1e-3, nodes=None):
         maxt = mi.Float(rays.maxt)
 
         while active:
-            pi = scene.ray_intersect_preliminary(mi.Ray3f(o, d, maxt - t_offset), False, active)
+            # Mitsuba's Ray3f(o, d, x) reads x as the time, not maxt: set maxt explicitly.
+            ray = mi.Ray3f(o, d)
+            ray.maxt = maxt - t_offset
+            pi = scene.ray_intersect_preliminary(ray, False, active)
             valid = active & pi.is_valid()
             sid = dr.reinterpret_array(mi.UInt32, pi.shape)
             is_gaussian = mi.Bool(False)

@@ -119,9 +119,6 @@ def test_new_poses_and_sensors(street, tmp_path):
     assert r["range"].ravel() == pytest.approx([1.73, 1.73 * np.sqrt(2)], rel=0.01)
 
 
-@pytest.mark.xfail(strict=True, reason="plugins/hits.py trace() builds mi.Ray3f(o, d, maxt - t_offset): "
-                   "the third argument is the ray's time, so maxt stays infinite and lidar_return "
-                   "ignores far_clip (shadow rays to point/spot lights also see past the light)")
 def test_far_clip_limits_the_range(street, tmp_path):
     custom = tmp_path / "sensor.json"
     custom.write_text(json.dumps({"elevations_deg": [0, -10, -20], "azimuth_steps": 90, "far_clip": 30}))

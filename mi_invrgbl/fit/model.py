@@ -197,6 +197,11 @@ class GaussianModel:
             p[name + ".normal"] = self.world_normal(node, poses.get(name))
             p[name + ".roughness"] = node.values["roughness"]
             p[name + ".lidar_albedo"] = node.values["lidar_albedo"]
+            if name + ".sun_visibility" in p:
+                # Every attribute must keep the Gaussian count (densification changes it).
+                sv = node.sun_visibility
+                p[name + ".sun_visibility"] = mi.Float(sv) if sv is not None and sv.shape[0] == node.count \
+                    else dr.ones(mi.Float, node.count)
         if update:
             self.params.update()
 
