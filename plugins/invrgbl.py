@@ -6,7 +6,8 @@ import drjit as dr
 import mitsuba as mi
 
 from . import brdf, hits as hitlib
-from .lighting import GaussianLighting, LightingCache, transmittance
+from .lighting import (GaussianLighting, LightingCache, fibonacci_direction,
+                       hash_rotation_of, transmittance)
 
 _variant = mi.variant()
 
@@ -124,9 +125,13 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
             specular += e * cos_l * brdf.specular(wl, wo, tau, self.f0)
         # Specular sky: pi/M sum_i f_s(w_i, w_o) v_i L(w_i) over the Gaussian's samples.
         M = lighting.samples
+        # The sample directions are a fixed spiral in each Gaussian's normal
+        # frame (lighting.sky_dirs = frame.to_world(spiral)); recomputing the
+        # local direction is exact and saves a differentiable gather per sample.
+        rot = hash_rotation_of(gidx)
         for i in range(M):
             j = gidx * M + i
-            wi = frame.to_local(dr.gather(mi.Vector3f, lighting.sky_dirs, j, active))
+            wi = fibonacci_direction(mi.Float(i), M, rot)
             li = dr.gather(mi.Color3f, lighting.sky_radiance, j, active)
             specular += li * brdf.specular(wi, wo, tau, self.f0) * (dr.pi / M)
         colour = albedo * irradiance_pi + specular

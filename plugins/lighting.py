@@ -41,8 +41,11 @@ def fibonacci_hemisphere(count, rotation):
     neighbouring Gaussians do not share the same sample pattern.
     """
     j = dr.arange(mi.UInt32, dr.width(rotation) * count)
-    i = mi.Float(j % count)
-    rot = dr.gather(mi.Float, rotation, j // count)
+    return fibonacci_direction(mi.Float(j % count), count, dr.gather(mi.Float, rotation, j // count))
+
+
+def fibonacci_direction(i, count, rot):
+    """Local direction ``i`` (a Float) of the spiral turned by ``rot``."""
     u = (i + 0.5) / count
     frac = i * GOLDEN + rot
     phi = dr.two_pi * (frac - dr.floor(frac))
@@ -53,7 +56,12 @@ def fibonacci_hemisphere(count, rotation):
 
 def _hash_rotation(n):
     """Deterministic per-element offsets in [0, 1) (a low-discrepancy sequence)."""
-    x = mi.Float(dr.arange(mi.UInt32, n)) * 0.7548776662466927
+    return hash_rotation_of(dr.arange(mi.UInt32, n))
+
+
+def hash_rotation_of(index):
+    """:func:`_hash_rotation`'s offset of element ``index`` (UInt32)."""
+    x = mi.Float(index) * 0.7548776662466927
     return x - dr.floor(x)
 
 

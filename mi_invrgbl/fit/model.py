@@ -35,6 +35,7 @@ import mitsuba as mi
 
 from ..plugins.gaussian_ply import GaussianCloud
 from ..plugins.gaussians import cloud_from_shape, apply_transform
+from ..scene_graph import _rotation_to_quat_xyzw as rotation_to_quat_xyzw
 
 GEOMETRY_KEYS = ("center", "log_scale", "quat", "opacity_logit")
 MATERIAL_KEYS = ("normal", "albedo", "roughness", "lidar_albedo")
@@ -48,16 +49,6 @@ LOGIT_RANGE = (-9.0, 9.0)
 def _logit(p):
     p = np.clip(p, 1e-4, 1 - 1e-4)
     return np.log(p / (1 - p))
-
-
-def quat_mul(a: mi.Quaternion4f, b: mi.Quaternion4f) -> mi.Quaternion4f:
-    return a * b
-
-
-def matrix_quaternion_xyzw(rot: np.ndarray) -> np.ndarray:
-    from ..plugins.gaussian_ply import matrix_to_quaternion
-    q = matrix_to_quaternion(rot[None].astype(np.float64))[0]  # w x y z
-    return np.array([q[1], q[2], q[3], q[0]])
 
 
 @dataclass
@@ -75,8 +66,13 @@ class Node:
         idx = dr.arange(mi.UInt32, self.count) * w
         if w == 1:
             return v
-        parts = [dr.gather(mi.Float, v, idx + j) for j in range(w)]
-        return mi.Vector3f(*parts) if w == 3 else mi.Vector4f(*parts)
+        if w == 3:
+            return self.vec_of(v, 3)
+        return mi.Vector4f(*[dr.gather(mi.Float, v, idx + j) for j in range(w)])
+
+    def vec_of(self, flat, width):
+        idx = dr.arange(mi.UInt32, self.count) * width
+        return mi.Vector3f(*[dr.gather(mi.Float, flat, idx + j) for j in range(3)])
 
     def numpy(self, key):
         w = WIDTHS[key]
@@ -164,7 +160,7 @@ class GaussianModel:
         if pose is not None and node.dynamic:
             rot = pose[:3, :3]
             c = mi.Matrix3f(rot.tolist()) @ c + mi.Vector3f(*[float(v) for v in pose[:3, 3]])
-            qr = matrix_quaternion_xyzw(rot)
+            qr = rotation_to_quat_xyzw(rot)
             q = mi.Quaternion4f(*[float(x) for x in qr]) * q
         s = dr.exp(node.vec("log_scale"))
         # Same thickening as the shape plugin: flatter Gaussians lose rays.
@@ -174,8 +170,9 @@ class GaussianModel:
         logit = dr.clip(node.values["opacity_logit"], *LOGIT_RANGE)
         return data, dr.rcp(1.0 + dr.exp(-logit))
 
-    def world_normal(self, node: Node, pose=None):
-        n = node.vec("normal")
+    def world_normal(self, node: Node, pose=None, values=None):
+        """World-frame unit normals (flat), from ``values`` (default: the node's)."""
+        n = node.vec("normal") if values is None else node.vec_of(values, 3)
         if pose is not None and node.dynamic:
             n = mi.Matrix3f(pose[:3, :3].tolist()) @ n
         n = n * dr.rsqrt(dr.maximum(dr.squared_norm(n), 1e-20))
@@ -204,21 +201,6 @@ class GaussianModel:
                     else dr.ones(mi.Float, node.count)
         if update:
             self.params.update()
-
-    # ---------------------------------------------------------- clamping
-    def clamp(self):
-        """Project bounded variables back into range after an optimiser step."""
-        for node in self.nodes.values():
-            v = node.values
-            for key in ("colour", "albedo", "lidar_albedo"):
-                if key in v:
-                    v[key] = dr.clip(v[key], 0.0, 1.0)
-            if "roughness" in v:
-                v["roughness"] = dr.clip(v["roughness"], *ROUGHNESS_RANGE)
-            if "opacity_logit" in v:
-                v["opacity_logit"] = dr.clip(v["opacity_logit"], *LOGIT_RANGE)
-            if "log_scale" in v:
-                v["log_scale"] = dr.clip(v["log_scale"], np.log(1e-4), np.log(5.0))
 
     # ------------------------------------------------------ numpy export
     def cloud(self, name, stage=2) -> GaussianCloud:

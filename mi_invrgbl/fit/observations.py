@@ -19,17 +19,8 @@ import mitsuba as mi
 
 from ..errors import UserError
 from ..io.images import read_exr
+from ..io.kitti import srgb_to_linear
 from ..scene_graph import Frames
-
-
-def srgb_to_linear(x):
-    x = np.asarray(x, np.float32)
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
-
-
-def linear_to_srgb(x):
-    x = np.clip(np.asarray(x, np.float32), 0, 1)
-    return np.where(x <= 0.0031308, x * 12.92, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
 @dataclass
@@ -98,7 +89,7 @@ def _read_image(path, width, height):
     img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
     if img.shape[1] != width or img.shape[0] != height:
         img = cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
-    return srgb_to_linear(img)
+    return srgb_to_linear(img).astype(np.float32)
 
 
 def _read_scan(path):

@@ -28,6 +28,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..errors import UserError
+from ..metrics import psnr
 from ..plugins import hits as hitlib
 from ..scene_graph import Frames
 from . import losses
@@ -176,14 +177,8 @@ class FitContext:
 
 
 # ------------------------------------------------------------------ evaluation
-def psnr(pred, target):
-    mse = float(np.mean((np.clip(pred, 0, 1) - np.clip(target, 0, 1)) ** 2))
-    return 10 * np.log10(1.0 / max(mse, 1e-12))
-
-
 def heldout_stage1(ctx):
     """Held-out PSNR of the unlit colour (sRGB) during stage 1."""
-    from .observations import linear_to_srgb
     vals = []
     with dr.suspend_grad():
         for f in ctx.held_out_frames:
@@ -193,13 +188,12 @@ def heldout_stage1(ctx):
             rgb, _, _ = camera_unlit(ctx.scene, f.camera.rays, ctx.config.max_hits,
                                      ctx.config.min_transmittance)
             img = np.stack([np.array(rgb[c]) for c in range(3)], axis=1)
-            vals.append(psnr(linear_to_srgb(img), linear_to_srgb(f.camera.image.reshape(-1, 3))))
+            vals.append(psnr(img, f.camera.image.reshape(-1, 3), srgb=True))
     return float(np.mean(vals)) if vals else float("nan")
 
 
 def heldout_stage2(ctx, stage2, frames=None):
     """Held-out PSNR (shaded) and LiDAR intensity RMSE from the frozen caches."""
-    from .observations import linear_to_srgb
     frames = ctx.held_out_frames if frames is None else frames
     ps, errs, counts = [], 0.0, 0
     with dr.suspend_grad():
@@ -209,7 +203,7 @@ def heldout_stage2(ctx, stage2, frames=None):
             if "camera" in out:
                 c = out["camera"]["rgb"]
                 img = np.stack([np.array(c[k]) for k in range(3)], axis=1)
-                ps.append(psnr(linear_to_srgb(img), linear_to_srgb(f.camera.image.reshape(-1, 3))))
+                ps.append(psnr(img, f.camera.image.reshape(-1, 3), srgb=True))
             if "lidar" in out:
                 pred = np.array(out["lidar"]["intensity"])
                 hit = f.lidar.hit.ravel()
@@ -604,12 +598,18 @@ def run_fit(scene_path, config: FitConfig, log=print):
         # ---------------- freeze + stage 2
         t = time.perf_counter()
         frozen = FrozenScene(ctx, ctx.observations)
-        ctx.times["freeze"] = time.perf_counter() - t
-        log("[fit] geometry frozen: %d frames traced once, %.1f MB of hit lists, %.1f s"
-            % (len(ctx.observations), frozen.nbytes() / 2**20, ctx.times["freeze"]))
+        traced = time.perf_counter() - t
         if start_it == 0:
             init_materials(ctx, frozen)
+        t = time.perf_counter()
         stage2 = Stage2(ctx, frozen)
+        # Trace the per-Gaussian visibility now (it is cached on first use),
+        # so that it is counted here and not in the first stage-2 iteration.
+        with dr.suspend_grad():
+            stage2.render_frame(ctx.train_frames[0], stage2.values(), lidar=False)
+        ctx.times["freeze"] = traced + time.perf_counter() - t
+        log("[fit] geometry frozen: %d frames traced once, %.1f MB of hit lists, visibility "
+            "cached; %.1f s" % (len(ctx.observations), frozen.nbytes() / 2**20, ctx.times["freeze"]))
         if opt_state:
             from .steps import restore_optimizer
             restore_optimizer(stage2.opt, opt_state)

@@ -89,12 +89,7 @@ class FrozenScene:
             pose = frame.poses.get(name)
             normal = values[name + ".normal"]
             if pose is not None and node.dynamic:
-                n = mi.Vector3f(*[dr.gather(mi.Float, normal, dr.arange(mi.UInt32, node.count) * 3 + j)
-                                  for j in range(3)])
-                n = mi.Matrix3f(pose[:3, :3].tolist()) @ n
-                normal = dr.zeros(mi.Float, node.count * 3)
-                for j in range(3):
-                    dr.scatter(normal, n[j], dr.arange(mi.UInt32, node.count) * 3 + j)
+                normal = model.world_normal(node, pose, normal)
             attributes = {"normal": normal, "albedo": values[name + ".albedo"],
                           "roughness": values[name + ".roughness"],
                           "lidar_albedo": values[name + ".lidar_albedo"]}
