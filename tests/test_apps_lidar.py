@@ -78,13 +78,13 @@ def test_simulation_matches_the_generators_scans(street, simulated):
 
 
 def test_kitti_bin_points_lie_on_the_generators_points(street, simulated):
-    from scipy.spatial import cKDTree
+    from mi_invrgbl.fit.baselines import NearestNeighbourIntensity
     points, intensity = read_velodyne(str(simulated / "frame_0000.bin"))
     sim = read_exr(str(simulated / "frame_0000.exr"))
     assert len(points) == int(np.sum(sim["hit"] > 0))
     assert np.all((intensity >= 0) & (intensity <= 1))
     ref, _ = read_velodyne(str(street / "sequences" / "00" / "velodyne" / "000000.bin"))
-    d, _ = cKDTree(ref).query(points)
+    _, d = NearestNeighbourIntensity(ref, np.zeros(len(ref))).query(points)
     print("KITTI .bin: %d points, nearest generator point median %.4f m" % (len(points), np.median(d)))
     assert np.median(d) < 0.03
     # Sensor frame: x forward, y left, z up; the road is about 1.73 m below the sensor.
