@@ -357,6 +357,22 @@ def load_lights(gt_dir):
         raise UserError("%s: not valid JSON" % p) from None
 
 
+def sun_metrics(sky, lights, R):
+    """The fitted sun against the ground truth's time-A sun (the fitted light)."""
+    import mitsuba as mi
+    la = (lights or {}).get("time_a")
+    if not la or "sun_direction" not in la:
+        return None
+    params = mi.traverse(sky)
+    irr = np.array(params["sun_irradiance"], np.float64).ravel()
+    fitted = np.array(params["sun_direction"], np.float64).ravel()
+    truth = R @ np.asarray(la["sun_direction"], np.float64)
+    cos = np.dot(fitted, truth) / max(np.linalg.norm(fitted) * np.linalg.norm(truth), 1e-12)
+    return {"sun_used": bool(np.max(irr) > 0), "sun_direction": fitted.tolist(),
+            "true_sun_direction": truth.tolist(),
+            "sun_direction_error_deg": float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))}
+
+
 def ground_truth_metrics(cam, gt_dir, number, R):
     """Material metrics of one frame against gt/maps (empty dict if absent)."""
     from .. import metrics as M
@@ -598,6 +614,11 @@ def evaluate(scene_path, frames_spec="held-out", spp=0, samples=None, lidar_mode
                 swap.restore()
 
     mean = _mean(rows)
+    lighting = sun_metrics(sky, lights, R) if sky is not None else None
+    if lighting:
+        log("[eval] sun: %s" % ("not used" if not lighting["sun_used"] else
+                                 "%.1f deg from the true time-A direction"
+                                 % lighting["sun_direction_error_deg"]))
     result = {"format": "mi-invrgbl-metrics/1", "scene": str(Path(scene_xml).absolute()),
               "frames_json": str(frames.path), "selection": frames_spec,
               "lidar_response": str(scene_lidar) if scene_lidar else "default",
@@ -605,7 +626,7 @@ def evaluate(scene_path, frames_spec="held-out", spp=0, samples=None, lidar_mode
               "notes": {"psnr": "sRGB in [0, 1], peak 1; identical images = %g dB" % PSNR_CAP,
                         "albedo_rmse": "per-channel least-squares scale fit, then RMSE",
                         "lidar_intensity_rmse": "over beams that return in the observation"},
-              "frames": rows, "mean": mean}
+              "frames": rows, "mean": mean, "lighting": lighting}
     return result
 
 

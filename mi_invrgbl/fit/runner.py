@@ -315,8 +315,7 @@ def _loop(ctx, stage_name, stage, start, total, evaluate, opt_getter):
 # ------------------------------------------------------------------ between stages
 def select_lighting(ctx):
     """Sun and SH order from stage-1 colours and the directly seen sky."""
-    from .selection import (choose_sun_pairs, fit_sh_orders, hemisphere_candidates,
-                            neighbour_pairs, pad_sh, refine_candidates, sun_features)
+    from .selection import fit_sh_orders, pad_sh, select_sun
     from ..plugins.sh import num_coeffs
     cfg = ctx.config
     t = time.perf_counter()
@@ -374,15 +373,7 @@ def select_lighting(ctx):
     if cfg.sun == "off":
         sel["sun"] = {"use_sun": False, "forced": True}
     elif centers.shape[0] >= 50:
-        pairs = neighbour_pairs(centers, normals, seed=cfg.seed)
-        dirs = hemisphere_candidates(cfg.sun_candidates)
-        feats = sun_features(ctx.scene, centers, normals, dirs)
-        coarse = choose_sun_pairs(lum, feats, dirs, pairs)
-        fine_dirs = refine_candidates(coarse["direction"])
-        fine_feats = sun_features(ctx.scene, centers, normals, fine_dirs)
-        sel["sun"] = choose_sun_pairs(lum, fine_feats, fine_dirs, pairs)
-        sel["sun"]["coarse_correlation"] = coarse["correlation"]
-        sel["sun"]["median_correlation"] = coarse["median_correlation"]
+        sel["sun"] = select_sun(ctx.scene, centers, normals, lum, wts, cfg.sun_candidates)
         if cfg.sun == "on":
             sel["sun"]["use_sun"], sel["sun"]["forced"] = True, True
     else:
@@ -423,11 +414,14 @@ def select_lighting(ctx):
     ctx.selection.update(sel)
     ctx.sky_level = sky_level
     ctx.times["selection"] = time.perf_counter() - t
-    ctx.log("[fit] lighting: sun %s (best direction %s, correlation %.2f, sun/sky %.2f); "
+    ctx.log("[fit] lighting: sun %s (best direction %s explains %.1f %% of within-surface "
+            "shading, %.1f %% beyond sky occlusion, typical direction %.1f %%; sun/sky %.2f); "
             "SH order %d; %.1f s" % ("used" if ctx.use_sun else "not used",
                                      np.round(s.get("direction", [0, 0, 1]), 2).tolist(),
-                                     s.get("correlation", float("nan")), s.get("sun_to_sky", float("nan")),
-                                     chosen, ctx.times["selection"]))
+                                     100 * s.get("gain", float("nan")),
+                                     100 * s.get("gain_over_sky", float("nan")),
+                                     100 * s.get("median_gain", float("nan")),
+                                     s.get("sun_to_sky", float("nan")), chosen, ctx.times["selection"]))
 
 
 def init_materials(ctx, frozen):
