@@ -22,6 +22,15 @@ accumulate
     dynamic object's box (in the frames it is labelled or interpolated)
     go to the object, in its own frame; the rest within
     [``min_range``, ``max_range``] to the background.
+extend walls
+    A LiDAR sees nothing above its top beam, so the upper part of a facade
+    that a camera sees would have no Gaussians at all. Vertical structures
+    (an xy cell of ``0.3`` m whose points span >= 1 m in height) whose top
+    point was measured by the top beams (elevation within 0.6 degrees of the
+    highest beam, i.e. cut by the field of view, not a real top edge) are
+    extended upward by ``extend_walls`` metres in 0.15 m steps; the new
+    points inherit their seed's intensity and range. Stage 1 of ``fit``
+    lowers the opacity of those that the images show as sky.
 normals
     Background: voxel dedupe (``voxel``), random subsample to ``max_points``
     (seeded), k-NN (OpenCV FLANN), local PCA -> normal (oriented towards the
@@ -84,6 +93,7 @@ class ImportOptions:
     beams: int | None = None
     sky_order: int = 2
     sun_irradiance: float = 0.0
+    extend_walls: float = 6.0          # metres above the top beam's hits (0: off)
     overwrite: bool = False
     verify: bool = True
 
@@ -108,6 +118,8 @@ class ImportOptions:
             raise UserError(f"--object-points must be at least 10 (got {self.object_points})")
         if not 0 <= self.min_range < self.max_range:
             raise UserError("--min-range must be >= 0 and below --max-range")
+        if not 0 <= self.extend_walls <= 100:
+            raise UserError(f"--extend-walls must lie in [0, 100] metres (got {self.extend_walls})")
         if self.sky_order not in (0, 1, 2, 3):
             raise UserError(f"--sky-order must be 0..3 (got {self.sky_order})")
         return self
@@ -274,6 +286,8 @@ def import_scene(data, out_xml, options: ImportOptions | None = None, log=print)
     src, state = steps.run("read", _read, data, opts, log)
     steps.run("odometry", _odometry, src, state, opts, log)
     steps.run("accumulate", _accumulate, src, state, opts, log)
+    if opts.extend_walls > 0:
+        steps.run("extend walls", _extend_walls, state, opts, log)
     steps.run("normals", _background, state, opts, log)
     steps.run("objects", _objects, state, opts, log)
     steps.run("colours", _colours, state, opts, log)
@@ -511,6 +525,53 @@ def _accumulate(src, state, opts, log):
     log("[import] %d background points from %d sweeps (%d total; %d in moving objects)"
         % (n_acc, len(world_points), state["counts"]["points_total"],
            sum(sum(len(p) for p in o.points) for o in dyn)))
+
+
+# -- wall extension ---------------------------------------------------------------------
+
+def _extend_walls(state, opts, log, cell=0.3, min_height=1.0, step=0.15, margin_deg=0.6):
+    bg = state["bg"]
+    P = bg["points"].astype(np.float64)
+    poses = state["poses"]
+    if P.shape[0] == 0:
+        return
+    # Elevation of each point in its own sweep's sensor frame.
+    R = poses[bg["frame"], :3, :3]
+    t = poses[bg["frame"], :3, 3]
+    local = np.einsum("nji,nj->ni", R, P - t)
+    elev = np.arctan2(local[:, 2], np.hypot(local[:, 0], local[:, 1]))
+    top_beam = float(np.max(state["lidar_table"]))
+    cut = elev >= top_beam - np.radians(margin_deg)
+    keys = np.floor(P[:, :2] / cell).astype(np.int64)
+    _, inv = np.unique(keys, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    ncell = int(inv.max()) + 1
+    zmax = np.full(ncell, -np.inf)
+    zmin = np.full(ncell, np.inf)
+    np.maximum.at(zmax, inv, P[:, 2])
+    np.minimum.at(zmin, inv, P[:, 2])
+    tall = (zmax - zmin) >= min_height
+    # Seed: the highest top-beam point of each tall cell, if it is the cell's top.
+    cand = np.nonzero(cut & tall[inv] & (P[:, 2] >= zmax[inv] - 0.2))[0]
+    if cand.size == 0:
+        state["counts"]["wall_extension_points"] = 0
+        log("[import] no facade cut by the LiDAR's top beam: nothing to extend")
+        return
+    order = cand[np.argsort(-P[cand, 2])]
+    _, first = np.unique(inv[order], return_index=True)
+    seeds = order[first]
+    k = np.arange(1, int(opts.extend_walls / step) + 1)
+    n_new = seeds.size * k.size
+    new = np.repeat(P[seeds], k.size, axis=0)
+    new[:, 2] += np.tile(k * step, seeds.size)
+    for key, values in (("points", new.astype(np.float32)),
+                        ("intensity", np.repeat(bg["intensity"][seeds], k.size)),
+                        ("range", np.repeat(bg["range"][seeds], k.size)),
+                        ("frame", np.repeat(bg["frame"][seeds], k.size))):
+        bg[key] = np.concatenate([bg[key], values.astype(bg[key].dtype)])
+    state["counts"]["wall_extension_points"] = int(n_new)
+    log("[import] %d facade columns cut by the top beam extended by %.1f m (%d points)"
+        % (seeds.size, opts.extend_walls, n_new))
 
 
 # -- background Gaussians ---------------------------------------------------------------
