@@ -75,15 +75,24 @@ def optimizer_state(opt) -> dict:
     return out
 
 
+def _like(kind, array):
+    """``array`` (from :func:`optimizer_state`) as a Dr.Jit array of type ``kind``:
+    flat for ``Float``, (3, N) for the sun direction's ``Vector3f`` and the like."""
+    array = np.ascontiguousarray(array, np.float32)
+    return kind(array) if array.ndim == 1 else kind(*array)
+
+
 def restore_optimizer(opt, state: dict):
     """Put checkpointed values and moments back into ``opt`` (same keys)."""
     for key in list(opt.keys()):
         if "value/" + key not in state:
             continue
-        opt[key] = mi.Float(state["value/" + key])
+        kind = type(opt[key])
+        opt[key] = _like(kind, state["value/" + key])
         value, promoted, lr, extra = opt.state[key]
-        if state["m/" + key].shape[0] == dr.width(value):
+        m, v = state["m/" + key], state["v/" + key]
+        if m.shape[-1] == dr.width(value):
             t = type(extra[0])(int(state["t/" + key][0])) if extra[0] is not None else extra[0]
             opt.state[key] = (value, promoted, lr,
-                              (t, mi.Float(state["m/" + key]), mi.Float(state["v/" + key]), extra[3]))
+                              (t, _like(type(extra[1]), m), _like(type(extra[2]), v), extra[3]))
         opt.set_learning_rate({key: float(state["lr/" + key])})
