@@ -142,3 +142,36 @@ def test_bad_weights_and_missing_scene(tmp_path):
         LossWeights.parse("rgb2lidar=-1")
     with pytest.raises(UserError):
         run_fit(str(tmp_path / "nope" / "scene.xml"), small_config(tmp_path), log=lambda *a: None)
+
+
+def _edit_frames(scene_path, tmp_path, edit):
+    """A copy of the small scene's folder with frames.json edited by ``edit(frame)``."""
+    import shutil
+    src = os.path.dirname(scene_path)
+    dst = tmp_path / "scene"
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("fit*"))
+    meta = json.loads((dst / "frames.json").read_text())
+    for f in meta["frames"]:
+        edit(f)
+    (dst / "frames.json").write_text(json.dumps(meta))
+    return str(dst / "scene.xml")
+
+
+def test_every_frame_held_out_is_refused(scene_path, tmp_path):
+    from mi_invrgbl.errors import UserError
+    path = _edit_frames(scene_path, tmp_path, lambda f: f.update(held_out=True))
+    with pytest.raises(UserError, match="no training frame"):
+        run_fit(path, small_config(tmp_path / "fit"), log=lambda *a: None)
+
+
+def test_fit_without_lidar_scans_runs_on_images_alone(scene_path, tmp_path):
+    path = _edit_frames(scene_path, tmp_path, lambda f: f.pop("lidar_scan"))
+    out = tmp_path / "fit"
+    metrics = run_fit(path, small_config(out, stage1_iterations=6, stage2_iterations=8),
+                      log=lambda *a: None)
+    assert os.path.isfile(out / "scene.xml")
+    assert np.isfinite(metrics["heldout_psnr"])
+    assert metrics["heldout_intensity_rmse"] is None or not np.isfinite(metrics["heldout_intensity_rmse"])
+    scene = mi.load_file(str(out / "scene.xml"))
+    img = np.array(mi.render(scene, sensor=scene.sensors()[0], spp=1))
+    assert np.all(np.isfinite(img))

@@ -524,6 +524,9 @@ def select_lidar_lobe(ctx, stage2, frozen):
     """
     from .stage2 import Stage2
     cfg = ctx.config
+    if not any(f.lidar is not None for f in ctx.observations):
+        return {"model": cfg.lidar_model if cfg.lidar_model != "auto" else "pbr",
+                "pbr_rmse": float("nan"), "reason": "no LiDAR scans"}
     frames = ctx.held_out_frames if any(f.lidar is not None for f in ctx.held_out_frames) \
         else ctx.train_frames
     _, rmse_pbr = heldout_stage2(ctx, stage2, frames)

@@ -40,7 +40,9 @@ def safe_step(opt, loss, log, lr_scale_state: dict, what="step", before_step=Non
     if not np.isfinite(value):
         _lower(opt, log, lr_scale_state, "loss is %r" % value, what)
         return False
-    dr.backward(loss)
+    # A term can be inert for a scene (no LiDAR scans: the LiDAR side gets no
+    # gradient); that is not an error.
+    dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
     if not grads_finite(opt):
         _lower(opt, log, lr_scale_state, "a gradient is not finite", what)
         for key in opt.keys():
