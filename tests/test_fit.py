@@ -52,8 +52,12 @@ def test_outputs_written(fitted):
     assert saved["gaussians"]["background"] > 0
     assert saved["frames"]["held_out"] == [4]
     assert saved["peak_rss_mb"] > 0
-    for key in ("sun", "sh", "response_init", "lidar_lobe"):
+    for key in ("sun", "sh", "response_init", "lidar_lobe", "samples"):
         assert key in saved["selection"]
+    chosen = saved["selection"]["samples"]
+    assert set(chosen["by_samples"]) == {"4", "8", "16", "32"}
+    assert all(np.isfinite(v["psnr"]) for v in chosen["by_samples"].values())
+    assert 'name="samples" value="%d"' % chosen["samples"] in (out / "scene.xml").read_text()
 
 
 def test_fitted_scene_renders_in_mitsuba(fitted):

@@ -21,7 +21,10 @@ def add_parser(sub):
     p.add_argument("--lidar-columns", type=int, default=512,
                    help="LiDAR azimuth columns used per scan (default 512)")
     p.add_argument("--batch", type=int, default=4096, help="stage-1 rays per batch (camera and LiDAR each)")
-    p.add_argument("--samples", type=int, default=16, help="sky samples M per Gaussian (default 16)")
+    p.add_argument("--samples", type=int, default=16, help="sky samples M per Gaussian while fitting (default 16)")
+    p.add_argument("--render-samples", default="auto",
+                   help="sky samples M written into the fitted scene.xml: 'auto' (the smallest of "
+                        "4/8/16/32 within 0.1 dB of the best held-out PSNR) or a number")
     p.add_argument("--weights", default="",
                    help="loss weights, e.g. 'rgb2lidar=0,lidar2rgb=0' (paper defaults: lidar=rgb=1, "
                         "nor=mat=0.1, rgb2lidar=lidar2rgb=0.05; 0 switches a term off)")
@@ -55,9 +58,14 @@ def config_from_args(args):
     for name in ("stage1", "stage2", "width", "lidar_columns", "batch", "samples"):
         if getattr(args, name) < (0 if name.startswith("stage") else 1):
             raise UserError("--%s must be positive" % name.replace("_", "-"))
+    render_samples = str(args.render_samples).strip().lower()
+    if render_samples != "auto" and not (render_samples.isdigit() and int(render_samples) >= 1):
+        raise UserError("--render-samples must be 'auto' or a positive number (got %r)"
+                        % args.render_samples)
     return FitConfig(output=args.output, stage1_iterations=args.stage1, stage2_iterations=args.stage2,
                      fit_width=args.width, lidar_columns=args.lidar_columns, batch_rays=args.batch,
-                     samples=args.samples, weights=weights, bilateral_sigma=args.sigma, sun=args.sun,
+                     samples=args.samples, render_samples=render_samples, weights=weights,
+                     bilateral_sigma=args.sigma, sun=args.sun,
                      sh_order=args.sh_order, lidar_model=args.lidar_model,
                      fit_response=not args.no_response, max_gaussians=args.max_gaussians,
                      checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,

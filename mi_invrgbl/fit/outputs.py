@@ -67,7 +67,8 @@ def fitted_xml(ctx, lidar=False):
         ET.SubElement(integ, "string", {"name": "beam_gains", "value": _fmt(np.array(r.beam_gains))})
     else:
         integ = ET.Element("integrator", {"type": "invrgbl"})
-        ET.SubElement(integ, "integer", {"name": "samples", "value": str(ctx.config.samples)})
+        samples = ctx.selection.get("samples", {}).get("samples", ctx.config.samples)
+        ET.SubElement(integ, "integer", {"name": "samples", "value": str(samples)})
     root.insert(0, integ)
     ET.indent(tree, space="  ")
     return ET.tostring(root, encoding="unicode")

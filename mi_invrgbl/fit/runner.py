@@ -28,6 +28,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..errors import UserError
+from ..plugins.lighting import LightingCache
 from ..metrics import psnr
 from ..plugins import hits as hitlib
 from ..scene_graph import Frames
@@ -50,6 +51,7 @@ class FitConfig:
     max_hits: int = 24
     min_transmittance: float = 1e-2
     samples: int = 16
+    render_samples: str = "auto"  # auto | N: sky samples M written into scene.xml
     weights: LossWeights = field(default_factory=LossWeights)
     bilateral_sigma: float = 0.1
     slic_size: int = 12
@@ -559,6 +561,38 @@ def select_lidar_lobe(ctx, stage2, frozen):
     return result
 
 
+def select_samples(ctx, stage2, frozen, candidates=(4, 8, 16, 32)):
+    """Sky samples M for rendering the fitted scene: the smallest whose held-out
+    PSNR is within 0.1 dB of the largest's. Each is scored with its own traced
+    sky visibility (held-out frames only); the fit itself keeps ``samples``."""
+    cfg = ctx.config
+    fitted = cfg.samples
+    frames = [f for f in ctx.held_out_frames if f.camera is not None] or \
+        [f for f in ctx.train_frames if f.camera is not None][:2]
+    if cfg.render_samples != "auto":
+        return {"samples": int(cfg.render_samples), "forced": True}
+    if not frames or cfg.weights.rgb == 0:
+        return {"samples": fitted, "reason": "no camera frame to score on"}
+    saved = {f.index: frozen.caches[f.index] for f in frames}
+    scores = {}
+    try:
+        for m in candidates:
+            cfg.samples = m
+            for f in frames:   # a fresh cache: visibility for this M
+                frozen.caches[f.index] = LightingCache()
+            t = time.perf_counter()
+            p, _ = heldout_stage2(ctx, stage2, frames)
+            scores[m] = {"psnr": p, "seconds": time.perf_counter() - t}
+    finally:
+        cfg.samples = fitted
+        frozen.caches.update(saved)
+    best = max(v["psnr"] for v in scores.values())
+    chosen = min(m for m, v in scores.items() if v["psnr"] >= best - 0.1)
+    return {"samples": chosen, "fitted_with": fitted,
+            "scored_on": "held-out" if frames[0].held_out else "training",
+            "by_samples": {str(m): v for m, v in scores.items()}}
+
+
 def run_fit(scene_path, config: FitConfig, log=print):
     """Fit ``scene_path`` (an imported scene); returns the metrics dict."""
     from .stage1 import Stage1
@@ -621,6 +655,14 @@ def run_fit(scene_path, config: FitConfig, log=print):
             % (ctx.selection["lidar_lobe"]["model"], ctx.selection["lidar_lobe"]["pbr_rmse"],
                "%.4f" % ctx.selection["lidar_lobe"]["lambertian_rmse"]
                if "lambertian_rmse" in ctx.selection["lidar_lobe"] else "not fitted"))
+        t = time.perf_counter()
+        ctx.selection["samples"] = select_samples(ctx, stage2, frozen)
+        ctx.times["samples selection"] = time.perf_counter() - t
+        m = ctx.selection["samples"]
+        log("[fit] sky samples M = %d for rendering%s" % (m["samples"], "".join(
+            "" if "by_samples" not in m else " (held-out PSNR %s; %.1f s)" % (", ".join(
+                "M=%s %.2f dB" % (k, v["psnr"]) for k, v in m["by_samples"].items()),
+                ctx.times["samples selection"]))))
         save_checkpoint(ctx, "done", config.stage2_iterations)
         interrupted = False
     except Interrupted:
