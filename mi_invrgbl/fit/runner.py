@@ -563,12 +563,12 @@ def select_lidar_lobe(ctx, stage2, frozen):
 
 def select_samples(ctx, stage2, frozen, candidates=(4, 8, 16, 32)):
     """Sky samples M for rendering the fitted scene: the smallest whose held-out
-    PSNR is within 0.1 dB of the largest's. Each is scored with its own traced
-    sky visibility (held-out frames only); the fit itself keeps ``samples``."""
+    PSNR is within 0.1 dB of the best. Each is scored on up to three held-out
+    frames with its own traced sky visibility; the fit itself keeps ``samples``."""
     cfg = ctx.config
     fitted = cfg.samples
-    frames = [f for f in ctx.held_out_frames if f.camera is not None] or \
-        [f for f in ctx.train_frames if f.camera is not None][:2]
+    frames = ([f for f in ctx.held_out_frames if f.camera is not None] or
+              [f for f in ctx.train_frames if f.camera is not None])[:3]
     if cfg.render_samples != "auto":
         return {"samples": int(cfg.render_samples), "forced": True}
     if not frames or cfg.weights.rgb == 0:
@@ -578,8 +578,12 @@ def select_samples(ctx, stage2, frozen, candidates=(4, 8, 16, 32)):
     try:
         for m in candidates:
             cfg.samples = m
-            for f in frames:   # a fresh cache: visibility for this M
-                frozen.caches[f.index] = LightingCache()
+            # A fresh cache (visibility for this M), shared by the frames that
+            # shared one, so a static scene traces its visibility once per M.
+            fresh = {}
+            for f in frames:
+                old = saved[f.index]
+                frozen.caches[f.index] = fresh.setdefault(id(old), LightingCache())
             t = time.perf_counter()
             p, _ = heldout_stage2(ctx, stage2, frames)
             scores[m] = {"psnr": p, "seconds": time.perf_counter() - t}

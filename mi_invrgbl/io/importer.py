@@ -25,12 +25,14 @@ accumulate
 extend walls
     A LiDAR sees nothing above its top beam, so the upper part of a facade
     that a camera sees would have no Gaussians at all. Vertical structures
-    (an xy cell of ``0.3`` m whose points span >= 1 m in height) whose top
+    (an xy cell of ``0.25`` m whose points span >= 1 m in height) whose top
     point was measured by the top beams (elevation within 0.6 degrees of the
     highest beam, i.e. cut by the field of view, not a real top edge) are
-    extended upward by ``extend_walls`` metres in 0.15 m steps; the new
-    points inherit their seed's intensity and range. Stage 1 of ``fit``
-    lowers the opacity of those that the images show as sky.
+    extended upward by ``extend_walls`` metres in 0.25 m steps; the new
+    points inherit their seed's intensity and range, and are exempt from the
+    random thinning to ``max_points`` (up to 40 % of it) so that extended
+    walls stay opaque enough to cast shadows. Stage 1 of ``fit`` lowers the
+    opacity of those that the images show as sky.
 normals
     Background: voxel dedupe (``voxel``), random subsample to ``max_points``
     (seeded), k-NN (OpenCV FLANN), local PCA -> normal (oriented towards the
@@ -93,7 +95,7 @@ class ImportOptions:
     beams: int | None = None
     sky_order: int = 2
     sun_irradiance: float = 0.0
-    extend_walls: float = 6.0          # metres above the top beam's hits (0: off)
+    extend_walls: float = 10.0         # metres above the top beam's hits (0: off)
     overwrite: bool = False
     verify: bool = True
 
@@ -529,7 +531,7 @@ def _accumulate(src, state, opts, log):
 
 # -- wall extension ---------------------------------------------------------------------
 
-def _extend_walls(state, opts, log, cell=0.3, min_height=1.0, step=0.15, margin_deg=0.6):
+def _extend_walls(state, opts, log, cell=0.25, min_height=1.0, step=0.25, margin_deg=0.6):
     bg = state["bg"]
     P = bg["points"].astype(np.float64)
     poses = state["poses"]
@@ -569,6 +571,7 @@ def _extend_walls(state, opts, log, cell=0.3, min_height=1.0, step=0.15, margin_
                         ("range", np.repeat(bg["range"][seeds], k.size)),
                         ("frame", np.repeat(bg["frame"][seeds], k.size))):
         bg[key] = np.concatenate([bg[key], values.astype(bg[key].dtype)])
+    bg["extended"] = np.concatenate([np.zeros(len(P), bool), np.ones(n_new, bool)])
     state["counts"]["wall_extension_points"] = int(n_new)
     log("[import] %d facade columns cut by the top beam extended by %.1f m (%d points)"
         % (seeds.size, opts.extend_walls, n_new))
@@ -591,7 +594,18 @@ def _background(state, opts, log):
     nvox = first.size
     rng = np.random.default_rng(opts.seed)
     if nvox > opts.max_points:
-        sel = np.sort(rng.choice(nvox, opts.max_points, replace=False))
+        # Measured points are dense (many sweeps, 5 cm voxels) and are thinned
+        # at random; wall extensions are already on a coarse grid, so thinning
+        # them alike would leave see-through walls (and no cast shadows).
+        # They are kept whole, up to 40 % of the budget.
+        ext = bg.get("extended")
+        ext_vox = ext[first] if ext is not None else np.zeros(nvox, bool)
+        ext_ids, real_ids = np.nonzero(ext_vox)[0], np.nonzero(~ext_vox)[0]
+        cap = int(0.4 * opts.max_points)
+        if ext_ids.size > cap:
+            ext_ids = rng.choice(ext_ids, cap, replace=False)
+        n_real = min(real_ids.size, opts.max_points - ext_ids.size)
+        sel = np.sort(np.concatenate([ext_ids, rng.choice(real_ids, n_real, replace=False)]))
     else:
         sel = np.arange(nvox)
     slot = np.full(nvox, -1, np.int64)
