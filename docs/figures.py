@@ -82,20 +82,30 @@ def _run(args):
     subprocess.run(_cli() + args, check=True)
 
 
-def kitti(fit, frame, obj):
+def kitti(fit, frame, obj, rerun=True):
     scene = os.path.join(fit, "scene.xml")
     work = os.path.join(fit, "figures")
     sel = ["--frames", "%d:%d" % (frame, frame + 1)]
-    _run(["relight", scene, "--sun-elevation", "35", "--sun-azimuth", "-60", "-o",
+    if rerun:
+        _commands(scene, work, sel, obj)
+    _pictures(fit, frame, work)
+
+
+def _commands(scene, work, sel, obj):
+    _run(["relight", scene, "--sun-elevation", "35", "--sun-azimuth", "-60",
+          "--sun-irradiance", "3,2.8,2.5", "-o",
           os.path.join(work, "relight")] + sel)
     _run(["night", scene, "--exposure", "3", "-o", os.path.join(work, "night")] + sel)
     _run(["insert", scene, "--object", obj, "--pose", "9,-1.5,-1.73,0", "-o",
           os.path.join(work, "insert")] + sel)
     _run(["lidar", scene, "-o", os.path.join(work, "lidar")] + sel)
+
+
+def _pictures(fit, frame, work):
     root = os.path.dirname(os.path.abspath(fit))
     rows = [tile(read_png(os.path.join(root, "observations", "image_%04d.png" % frame)),
                  "KITTI excerpt, frame %d (observed)" % frame, 320)]
-    for name, label in (("relight", "fit, relight --sun-elevation 35 --sun-azimuth -60"),
+    for name, label in (("relight", "fit, relight: a sun at 35 deg elevation"),
                         ("night", "fit, night (exposure x3)"),
                         ("insert", "fit, insert the synthetic street's fitted car")):
         rows.append(tile(read_png(os.path.join(work, name, "frame_%04d.png" % frame)), label, 320))
@@ -106,9 +116,13 @@ def kitti(fit, frame, obj):
     obs = read_exr(os.path.join(root, "observations", "lidar_%04d.exr" % frame))
     scale = max(float(np.percentile(obs["intensity"][obs["hit"] > 0], 99)), 1e-6)
     rng = sim["range"]
-    rows = [tile(sim["intensity"] / scale, "fit, lidar: simulated intensity (fitted response)", 620),
-            tile(obs["intensity"] / scale, "observed intensity", 620),
-            tile(np.where(rng > 0, 1 - np.clip(rng / 60.0, 0, 1), 0), "simulated range (near = bright)", 620)]
+
+    def stretch(img):   # 64 beams x 1024 columns: rows repeated to stay readable
+        return np.repeat(img, 4, axis=0)
+    rows = [tile(stretch(sim["intensity"] / scale), "fit, lidar: simulated intensity (fitted response)", 620),
+            tile(stretch(obs["intensity"] / scale), "observed intensity", 620),
+            tile(stretch(np.where(rng > 0, 1 - np.clip(rng / 30.0, 0, 1) ** 0.5, 0)),
+                 "simulated range (near = bright, 30 m = black)", 620)]
     out = os.path.join(IMG, "kitti_fit_lidar.png")
     cv2.imwrite(out, np.vstack(rows))
     print(out)
@@ -119,6 +133,6 @@ if __name__ == "__main__":
     if what == "albedo":
         albedo(sys.argv[2], int(sys.argv[3]), sys.argv[4] if len(sys.argv) > 4 else None)
     elif what == "kitti":
-        kitti(sys.argv[2], int(sys.argv[3]), sys.argv[4])
+        kitti(sys.argv[2], int(sys.argv[3]), sys.argv[4], rerun="--pictures-only" not in sys.argv)
     else:
         sys.exit(__doc__)
