@@ -326,3 +326,16 @@ def test_nn_baseline_million_points_fast():
     nn = NearestNeighbourIntensity(pts)
     nn.predict(rng.uniform(0, 80, (131072, 3)))
     assert time.perf_counter() - t < 10
+
+
+
+def test_eval_keeps_what_fit_wrote(fit_dir):
+    from mi_invrgbl.cli import main
+    out = fit_dir / "fit_and_eval.json"
+    out.write_text('{"selection": {"sun": {"use_sun": true}}, "wall_s": 12.5}')   # as fit leaves it
+    assert main(["eval", str(fit_dir), "-o", str(out), "--no-baseline", "--no-relight"]) == 0
+    res = json.loads(out.read_text())
+    assert res["fit"]["wall_s"] == 12.5 and res["fit"]["selection"]["sun"]["use_sun"]
+    assert "mean" in res
+    assert main(["eval", str(fit_dir), "-o", str(out), "--no-baseline", "--no-relight"]) == 0
+    assert json.loads(out.read_text())["fit"]["wall_s"] == 12.5          # a second eval keeps it

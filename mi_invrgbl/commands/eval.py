@@ -31,7 +31,8 @@ camera pose (``gt/trajectory.json`` ``world_from_cam``) onto its
 
 Writes ``metrics.json`` (per frame and the mean over frames; PSNR of
 identical images is reported as :data:`PSNR_CAP` dB, JSON has no infinity)
-and prints a table.
+and prints a table. What ``fit`` wrote into that file before (selection,
+response, times) is kept under ``"fit"``.
 """
 
 from __future__ import annotations
@@ -630,6 +631,15 @@ def evaluate(scene_path, frames_spec="held-out", spp=0, samples=None, lidar_mode
     return result
 
 
+def _read_json(path):
+    try:
+        with open(path) as f:
+            data = json.load(f)
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
 def run(args):
     result = evaluate(args.scene, args.frames, spp=args.spp, samples=args.samples,
                       lidar_model=args.lidar_model, baseline=not args.no_baseline,
@@ -638,6 +648,14 @@ def run(args):
     scene_xml, _ = resolve_inputs(args.scene)
     out = args.output or str(Path(scene_xml).parent / "metrics.json")
     Path(out).parent.mkdir(parents=True, exist_ok=True)
+    # DIR/fit/metrics.json first holds what ``fit`` reported (selection,
+    # response, times); keep it under "fit" instead of overwriting it.
+    previous = _read_json(out)
+    if previous is not None:
+        if previous.get("format") != result["format"]:
+            result["fit"] = previous
+        elif "fit" in previous:
+            result["fit"] = previous["fit"]
     tmp = out + ".part"
     with open(tmp, "w") as f:
         json.dump(_json_clean(result), f, indent=1)

@@ -10,6 +10,7 @@ carrying the fitted sensor response and LiDAR model, so that
 from __future__ import annotations
 
 import json
+import time
 import os
 import xml.etree.ElementTree as ET
 
@@ -140,6 +141,7 @@ def write_outputs(ctx, stage2, interrupted=False):
                      "angle_exponent": float(ctx.response.angle_exponent[0]),
                      "beam_gains": np.array(ctx.response.beam_gains).tolist()},
         "times_s": ctx.times,
+        "wall_s": time.perf_counter() - ctx.t_start + getattr(ctx, "wall_offset", 0.0),
         "peak_rss_mb": peak_rss_mb(),
         "rollbacks": ctx.lr_state.get("rollbacks", 0),
         "config": ctx.config.to_json(),
