@@ -33,7 +33,6 @@ import json
 import os
 import subprocess
 import sys
-import time
 
 VARIANTS = [
     ("full", []),
@@ -57,16 +56,10 @@ def _cli():
 
 def run_variant(scene, name, extra, stage1, stage2, seed):
     out = os.path.join(os.path.dirname(os.path.abspath(scene)), "fit_" + name.replace(" ", "_"))
-    t = time.time()
     subprocess.run(_cli() + ["fit", scene, "-o", out, "--stage1", str(stage1), "--stage2", str(stage2),
                              "--seed", str(seed)] + extra, check=True)
-    fit_s = time.time() - t   # includes start-up; the table uses the fit's own log
     subprocess.run(_cli() + ["eval", out], check=True)
     return read_variant(scene, name)
-
-
-def find(mean, key):
-    return mean.get(key)
 
 
 def fit_seconds(out, metrics=None):
@@ -94,7 +87,7 @@ def table(rows):
     for name, fit_s, mean, lighting in rows:
         cells = [name]
         for key, _, fmt in COLUMNS:
-            v = find(mean, key)
+            v = mean.get(key)
             cells.append(fmt % v if isinstance(v, (int, float)) and v == v else "-")
         if lighting and lighting.get("sun_used"):
             cells.append("%.1f" % lighting["sun_direction_error_deg"])
