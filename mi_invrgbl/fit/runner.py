@@ -404,7 +404,6 @@ def select_lighting(ctx):
     # albedo of 0.5 the regression's levels give the sky and sun magnitudes.
     s = sel["sun"]
     sky_level = max(s.get("sky_level", 0.5), 0.05)
-    init = init * (1.0 if sky_dirs else 1.0)
     ctx.params[ctx.sky_key] = mi.Float(init.ravel())
     if ctx.use_sun:
         ctx.params[ctx.sun_dir_key] = mi.Vector3f(*s["direction"])
@@ -578,12 +577,14 @@ def select_samples(ctx, stage2, frozen, candidates=(4, 8, 16, 32)):
     try:
         for m in candidates:
             cfg.samples = m
-            # A fresh cache (visibility for this M), shared by the frames that
-            # shared one, so a static scene traces its visibility once per M.
+            # The fit's own caches already hold the visibility for its M.
+            # Other M get fresh caches, shared by the frames that shared one,
+            # so a static scene traces its visibility once per M.
             fresh = {}
             for f in frames:
                 old = saved[f.index]
-                frozen.caches[f.index] = fresh.setdefault(id(old), LightingCache())
+                frozen.caches[f.index] = old if m == fitted else \
+                    fresh.setdefault(id(old), LightingCache())
             t = time.perf_counter()
             p, _ = heldout_stage2(ctx, stage2, frames)
             scores[m] = {"psnr": p, "seconds": time.perf_counter() - t}
