@@ -37,14 +37,15 @@ def _lidar_xml(i, to_world, columns):
             '<rfilter type="box"/></film></sensor>' % (i, m, columns))
 
 
-def scene_xml(ply_name, n_frames, width, height, columns, sun=True):
+def scene_xml(ply_name, n_frames, width, height, columns, sun=True, extra=""):
     cams, lids = poses(n_frames)
     body = ['<scene version="3.0.0">', '<integrator type="invrgbl"><integer name="samples" value="16"/></integrator>',
             '<emitter type="shsun" id="sky"><integer name="order" value="1"/>'
             '<string name="sh" value="1.6 1.8 2.3 0 0 0 0.5 0.5 0.7 0 0 0"/>'
             '<vector name="sun_direction" x="%g" y="%g" z="%g"/>'
             '<rgb name="sun_irradiance" value="%s"/></emitter>' % (SUN + ("3.0, 2.8, 2.5" if sun else "0",)),
-            '<shape type="gaussians" id="background"><string name="filename" value="%s"/></shape>' % ply_name]
+            '<shape type="gaussians" id="background"><string name="filename" value="%s"/></shape>' % ply_name,
+            extra]
     for i in range(n_frames):
         body.append(_camera_xml(i, cams[i] @ np.diag([-1.0, -1, 1, 1]), width, height))
         body.append(_lidar_xml(i, lids[i], columns))
@@ -70,8 +71,12 @@ def poses(n_frames):
     return cams, lids
 
 
-def build(out_dir, n_frames=5, width=96, height=32, columns=256, sun=True):
-    """Write the scene, its truth and observations into ``out_dir``; return the scene path."""
+def build(out_dir, n_frames=5, width=96, height=32, columns=256, sun=True, truth_extra=""):
+    """Write the scene, its truth and observations into ``out_dir``; return the scene path.
+
+    ``truth_extra`` (XML) is added to the truth only: something the
+    observations show (e.g. a shadow) that the scene to fit lacks.
+    """
     from mi_invrgbl.io.images import write_exr
     from mi_invrgbl.plugins.gaussian_ply import read_ply, write_ply
     import cv2
@@ -79,7 +84,7 @@ def build(out_dir, n_frames=5, width=96, height=32, columns=256, sun=True):
     truth = read_ply(PLY)
     write_ply(os.path.join(out_dir, "truth.ply"), truth)
     with open(os.path.join(out_dir, "truth.xml"), "w") as f:
-        f.write(scene_xml("truth.ply", n_frames, width, height, columns, sun))
+        f.write(scene_xml("truth.ply", n_frames, width, height, columns, sun, truth_extra))
     scene = mi.load_file(os.path.join(out_dir, "truth.xml"))
     lidar_int = mi.load_dict({"type": "lidar_return"})
     cams, lids = poses(n_frames)

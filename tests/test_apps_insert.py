@@ -293,6 +293,21 @@ def test_gaussians_switch_a_path_scene_to_invrgbl(files, tmp_path, capsys):
     assert 'integrator type="invrgbl"' in (out / "scene.xml").read_text()
 
 
+def test_stored_sun_visibility_is_traced_after_insertion(files, tmp_path):
+    # A fit writes sun_visibility="attribute" (its learned v_sun); the
+    # background's stored values know nothing of the new object, whose
+    # shadow appears only if the sun is traced.
+    stored = tmp_path / "stored.xml"
+    stored.write_text((files / "invrgbl.xml").read_text().replace(
+        '<integer name="samples" value="16"/>',
+        '<integer name="samples" value="16"/><string name="sun_visibility" value="attribute"/>'))
+    out = tmp_path / "o"
+    run(["insert", str(stored), "--object", str(files / "fit" / "scene.xml") + ":object_7",
+         "--pose", "10,0,0", "-o", str(out), "--frames", "0", "--spp", "1", "--samples", "2"])
+    text = (out / "scene.xml").read_text()
+    assert 'name="sun_visibility" value="trace"' in text and '"attribute"' not in text
+
+
 @pytest.mark.parametrize("args, message", [
     (["--object", "FIT:object_9", "--pose", "10,0,0"], "no shape node 'object_9' (its nodes: object_7)"),
     (["--object", "FIT", "--pose", "10,0,0"], "name the node to take from it"),

@@ -179,3 +179,22 @@ def test_fit_without_lidar_scans_runs_on_images_alone(scene_path, tmp_path):
     scene = mi.load_file(str(out / "scene.xml"))
     img = np.array(mi.render(scene, sensor=scene.sensors()[0], spp=1))
     assert np.all(np.isfinite(img))
+
+
+@pytest.mark.parametrize("mode", ["learn", "trace"])
+def test_sun_visibility_learned_or_traced(scene_path, tmp_path, mode):
+    from mi_invrgbl.plugins.gaussian_ply import read_ply
+    out = tmp_path / mode
+    metrics = run_fit(scene_path, small_config(out, sun="on", sun_visibility=mode,
+                                               render_samples="8"), log=lambda *a: None)
+    init = metrics["selection"]["shading_init"]
+    assert np.all(np.isfinite(init["sun_irradiance"])) and min(init["sun_irradiance"]) > 0
+    text = (out / "scene.xml").read_text()
+    assert ('name="sun_visibility" value="attribute"' in text) == (mode == "learn")
+    v = read_ply(str(out / "background.ply")).sun_visibility
+    assert np.all((v >= 0) & (v <= 1))
+    assert 0.02 < np.mean(v < 0.5) < 0.98      # the facade's shadow, and sunlit ground
+    scene = mi.load_file(str(out / "scene.xml"))
+    cam = [s for s in scene.sensors() if s.id() == "camera_0004"][0]
+    img = np.array(mi.render(scene, sensor=cam, spp=2))
+    assert np.isfinite(img).all() and img[..., :3].mean() > 0.05

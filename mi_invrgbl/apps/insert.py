@@ -31,7 +31,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 
 from ..errors import UserError
-from . import xml_edit
+from . import lighting_edit, xml_edit
 from .posing import NodePoser
 from .xml_edit import SceneDoc
 
@@ -252,6 +252,9 @@ def insert_doc(doc: SceneDoc, obj: ObjectSource, pose) -> tuple[SceneDoc, bool]:
     if obj.kind == "gaussians" and (integrator is None or integrator.get("type") != "invrgbl"):
         out.set_integrator(xml_edit.element("integrator", "invrgbl"))
         switched = True
+    # A fit may store its sun visibility per Gaussian; the inserted object
+    # casts its shadow only if visibility is traced.
+    lighting_edit.trace_sun_visibility(out)
     return out, switched
 
 

@@ -40,6 +40,9 @@ def add_parser(sub):
     p.add_argument("--per-frame-visibility", action="store_true",
                    help="trace sky/sun visibility per frame so moving objects' shadows move "
                         "(G x M shadow rays per frame; default: once, objects at their first pose)")
+    p.add_argument("--sun-visibility", choices=("learn", "trace"), default="learn",
+                   help="per-Gaussian sun visibility: traced at stage 2's start and then learned "
+                        "(the paper's v_sun; shadows of occluders the fit lacks), or traced only")
     p.add_argument("--max-gaussians", type=int, default=800000, help="densification cap")
     p.add_argument("--checkpoint-every", type=int, default=50)
     p.add_argument("--eval-every", type=int, default=50)
@@ -70,7 +73,8 @@ def config_from_args(args):
                      fit_response=not args.no_response, max_gaussians=args.max_gaussians,
                      checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
                      resume=args.resume, seed=args.seed,
-                     per_frame_visibility=args.per_frame_visibility)
+                     per_frame_visibility=args.per_frame_visibility,
+                     sun_visibility=args.sun_visibility)
 
 
 def run(args):

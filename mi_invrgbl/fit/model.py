@@ -16,6 +16,9 @@ normal          3      shading normal (node frame; normalised on use)
 albedo          3      RGB albedo in [0, 1]
 roughness       1      GGX roughness in [0.02, 1]
 lidar_albedo    1      LiDAR albedo in [0, 1]
+sun_visibility  1      the paper's v_sun in [0, 1]: how much sun reaches the
+                       Gaussian (traced at stage 2's start, then learned where
+                       the sun is used; stands in for occluders the fit lacks)
 ==============  =====  ===============================================
 
 :meth:`GaussianModel.push` writes a node's world-frame arrays into the scene's
@@ -38,7 +41,7 @@ from ..plugins.gaussians import cloud_from_shape, apply_transform
 from ..scene_graph import _rotation_to_quat_xyzw as rotation_to_quat_xyzw
 
 GEOMETRY_KEYS = ("center", "log_scale", "quat", "opacity_logit")
-MATERIAL_KEYS = ("normal", "albedo", "roughness", "lidar_albedo")
+MATERIAL_KEYS = ("normal", "albedo", "roughness", "lidar_albedo", "sun_visibility")
 WIDTHS = {"center": 3, "log_scale": 3, "quat": 4, "opacity_logit": 1, "colour": 3,
           "normal": 3, "albedo": 3, "roughness": 1, "lidar_albedo": 1, "sun_visibility": 1}
 ROUGHNESS_RANGE = (0.02, 1.0)
@@ -58,7 +61,6 @@ class Node:
     count: int
     dynamic: bool
     values: dict = field(default_factory=dict)   # key -> mi.Float (flat, width * count)
-    sun_visibility: np.ndarray = None            # traced, written to the PLY
 
     def vec(self, key):
         v = self.values[key]
@@ -131,9 +133,9 @@ class GaussianModel:
             "albedo": cloud.albedo,
             "roughness": cloud.roughness,
             "lidar_albedo": cloud.lidar_albedo,
+            "sun_visibility": cloud.sun_visibility,
         }
         node.values = {k: mi.Float(np.asarray(v, np.float32).ravel()) for k, v in values.items()}
-        node.sun_visibility = np.asarray(cloud.sun_visibility, np.float32)
 
     def keys(self, names):
         return ["%s.%s" % (n, k) for n in self.nodes for k in names]
@@ -195,10 +197,7 @@ class GaussianModel:
             p[name + ".roughness"] = node.values["roughness"]
             p[name + ".lidar_albedo"] = node.values["lidar_albedo"]
             if name + ".sun_visibility" in p:
-                # Every attribute must keep the Gaussian count (densification changes it).
-                sv = node.sun_visibility
-                p[name + ".sun_visibility"] = mi.Float(sv) if sv is not None and sv.shape[0] == node.count \
-                    else dr.ones(mi.Float, node.count)
+                p[name + ".sun_visibility"] = node.values["sun_visibility"]
         if update:
             self.params.update()
 
@@ -217,8 +216,7 @@ class GaussianModel:
             opacities=1 / (1 + np.exp(-logit)), normals=n,
             albedo=np.clip(node.numpy("albedo" if stage == 2 else "colour"), 0, 1),
             roughness=node.numpy("roughness"), lidar_albedo=node.numpy("lidar_albedo"),
-            sun_visibility=node.sun_visibility if node.sun_visibility is not None
-            and node.sun_visibility.shape[0] == node.count else np.ones(node.count, np.float32),
+            sun_visibility=np.clip(node.numpy("sun_visibility"), 0, 1),
             source="node '%s'" % name)
 
     def state_dict(self):

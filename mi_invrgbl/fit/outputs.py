@@ -70,6 +70,9 @@ def fitted_xml(ctx, lidar=False):
         integ = ET.Element("integrator", {"type": "invrgbl"})
         samples = ctx.selection.get("samples", {}).get("samples", ctx.config.samples)
         ET.SubElement(integ, "integer", {"name": "samples", "value": str(samples)})
+        if getattr(ctx, "sun_visibility_learned", False):
+            # The fitted v_sun holds for the fitted sun; relight/night switch to trace.
+            ET.SubElement(integ, "string", {"name": "sun_visibility", "value": "attribute"})
     root.insert(0, integ)
     ET.indent(tree, space="  ")
     return ET.tostring(root, encoding="unicode")

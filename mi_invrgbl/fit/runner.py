@@ -77,6 +77,7 @@ class FitConfig:
     sun_candidates: int = 48
     sun_gaussians: int = 20000
     per_frame_visibility: bool = False
+    sun_visibility: str = "learn"  # learn | trace: the paper's per-Gaussian v_sun, or traced only
 
     def to_json(self):
         d = asdict(self)
@@ -426,18 +427,12 @@ def select_lighting(ctx):
 
 
 def init_materials(ctx, frozen):
-    """Albedo from stage-1 colour and the selected light; LiDAR albedo and
-    response from a log-linear regression over the training scans."""
+    """LiDAR albedo and response from a log-linear regression over the
+    training scans."""
     from .response import estimate_response
     cfg = ctx.config
     t = time.perf_counter()
-    # RGB albedo: stage-1 colour divided by the lighting level (sky + sun)
-    # the regression found; clipped into [0, 1].
-    s = ctx.selection.get("sun", {})
-    level = max(s.get("sky_level", 0.5) + (s.get("sun_level", 0.0) * 0.5 if ctx.use_sun else 0.0), 1e-3)
-    for name, node in ctx.model.nodes.items():
-        colour = node.numpy("colour")
-        node.values["albedo"] = mi.Float(np.clip(colour * 0.5 / level, 0.02, 1.0).astype(np.float32).ravel())
+    # (RGB albedo and the sun's level: Stage2.init_shading, once visibility is traced.)
     # LiDAR: per return, the dominant Gaussian, its distance and incidence.
     I, D, C, B, S = [], [], [], [], []
     offsets, off = {}, 0
@@ -639,6 +634,14 @@ def run_fit(scene_path, config: FitConfig, log=print):
             init_materials(ctx, frozen)
         t = time.perf_counter()
         stage2 = Stage2(ctx, frozen)
+        ctx.sun_visibility_learned = stage2.learn_sun_visibility
+        if start_it == 0:
+            ctx.selection["shading_init"] = stage2.init_shading()
+            si = ctx.selection["shading_init"]
+            if "sun_irradiance" in si:
+                log("[fit] sun irradiance %s from %d facings with sunlit and shadowed Gaussians "
+                    "(%.0f %% of the seen Gaussians in traced shadow)"
+                    % (np.round(si["sun_irradiance"], 3).tolist(), si["facings"], 100 * si["shadowed"]))
         # Trace the per-Gaussian visibility now (it is cached on first use),
         # so that it is counted here and not in the first stage-2 iteration.
         with dr.suspend_grad():

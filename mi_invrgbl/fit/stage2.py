@@ -14,8 +14,16 @@ An iteration is then gathers and sums over cached arrays:
   superpixels of the LiDAR-albedo map;
 * ``L_nor`` / ``L_mat``: prior maps, where a frame has them.
 
-Optimised: per-Gaussian normal, albedo, roughness, LiDAR albedo; the SH sky,
-the sun's irradiance; range/angle exponents and per-beam gains.
+Optimised: per-Gaussian normal, albedo, roughness, LiDAR albedo and (with a
+sun) sun visibility; the SH sky, the sun's irradiance; range/angle exponents
+and per-beam gains.
+
+Sun visibility is the paper's ``v_sun``: traced once through the frozen
+Gaussians (:meth:`Stage2.init_sun_visibility`), then learned. Shadows cast by
+what the fit lacks (walls above the LiDAR's top beam, thin or see-through
+Gaussians) would otherwise have to be explained as dark albedo; with
+``L_lidar->rgb`` asking the albedo to be uniform where the LiDAR albedo is,
+the dark patch is explained as shadow instead.
 """
 
 from __future__ import annotations
@@ -24,16 +32,21 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
-from ..plugins.lighting import GaussianLighting, LightingCache
-from . import losses
+from ..plugins import hits as hitlib
+from ..plugins.lighting import (GaussianLighting, GaussianTable, LightingCache, light_at,
+                                point_lights, transmittance)
+from . import losses, shading_init
 from .model import MATERIAL_KEYS
 from .render import (FrozenHits, Response, VirtualNode, camera_shaded, freeze,
                      lidar_shaded)
 from .steps import make_optimizer, safe_step
 from .superpixels import slic_labels
 
+#: Metres above a Gaussian's centre its traced sun visibility starts from.
+SHADOW_OFFSET = 0.1
+
 STAGE2_LR = {"normal": 5e-3, "albedo": 1e-2, "roughness": 1e-2, "lidar_albedo": 1e-2,
-             "sky": 1e-2, "sun": 2e-2, "range_exponent": 2e-3, "angle_exponent": 2e-3,
+             "sun_visibility": 2e-2, "sky": 1e-2, "sun": 2e-2, "range_exponent": 2e-3, "angle_exponent": 2e-3,
              "beam_gains": 1e-2}
 
 
@@ -92,7 +105,8 @@ class FrozenScene:
                 normal = model.world_normal(node, pose, normal)
             attributes = {"normal": normal, "albedo": values[name + ".albedo"],
                           "roughness": values[name + ".roughness"],
-                          "lidar_albedo": values[name + ".lidar_albedo"]}
+                          "lidar_albedo": values[name + ".lidar_albedo"],
+                          "sun_visibility": values[name + ".sun_visibility"]}
             out.append(VirtualNode(model.shape_ids[name], data, opac, attributes, node.count))
         return out
 
@@ -104,12 +118,18 @@ class Stage2:
         self.model_kind = model_kind
         self.rng = ctx.rng
         self.labels = {}
+        cfg = ctx.config
+        # Learned v_sun only where there is a sun whose shading is fitted.
+        self.learn_sun_visibility = bool(cfg.sun_visibility == "learn" and ctx.use_sun
+                                         and ctx.sun_key is not None and cfg.weights.rgb > 0)
         self.build_optimizer()
 
     def build_optimizer(self, keys=None):
         ctx, model = self.ctx, self.ctx.model
         values, lrs = {}, {}
         for key in model.keys(MATERIAL_KEYS):
+            if key.endswith(".sun_visibility") and not self.learn_sun_visibility:
+                continue
             values[key] = model.get(key)
             lrs[key] = STAGE2_LR[key.split(".", 1)[1]]
         if ctx.sky_key is not None and ctx.config.weights.rgb > 0:
@@ -170,6 +190,86 @@ class Stage2:
                 ctx.model.set(key, mi.Float(value))
         ctx.params.update()
 
+    def init_shading(self):
+        """Start stage 2 from stage 1: trace the sun visibility (objects at the
+        first training frame's pose), estimate the sun's irradiance from lit
+        and shadowed Gaussians, and set the albedo that reproduces the stage-1
+        colour under that light (:mod:`.shading_init`). Returns a report."""
+        ctx, model = self.ctx, self.ctx.model
+        frame = ctx.train_frames[0] if ctx.train_frames else self.frozen.first
+        names = list(model.nodes)
+        counts = [model.nodes[n].count for n in names]
+        report = {}
+        suns = [e for kind, e in point_lights(ctx.scene) if kind == "sun"] if ctx.use_sun else []
+        with dr.suspend_grad():
+            model.push(frame.poses, stage=2)
+            if suns:
+                # Traced v (also the learned v_sun's start), through the scene's
+                # own copy of the frozen Gaussians.
+                scene_nodes = {n.shape.id(): n for n in hitlib.gaussian_nodes(ctx.scene)}
+                ordered = [scene_nodes[n] for n in names]
+                table = GaussianTable.build(ordered).load_geometry()
+                d, _, _ = light_at("sun", suns[0], table.center)
+                # From 0.1 m above the surface, as the sun selection traces:
+                # from the centre, low rays graze the neighbouring Gaussians
+                # and sunlit ground looks self-shadowed.
+                origin = table.center + SHADOW_OFFSET * table.normal
+                vis = np.clip(np.array(transmittance(ctx.scene, origin, d,
+                                                     mi.Float(dr.inf), ordered)), 0.0, 1.0)
+                for name, v in zip(names, shading_init.split_by_node(vis, table, counts)):
+                    model.nodes[name].values["sun_visibility"] = mi.Float(v.astype(np.float32))
+                sun_dir = np.array(d, np.float64).T
+            vals = self.values()
+            nodes = self.frozen.nodes(frame, vals)
+            lighting = GaussianLighting(ctx.scene, nodes, ctx.config.samples,
+                                        self.frozen.caches[frame.index],
+                                        trace_sun=not self.learn_sun_visibility)
+            table = lighting.table
+            D = shading_init.as_rows(lighting.diffuse_sky)
+            colour = np.concatenate([model.nodes[n].numpy("colour") for n in names])
+            sun_term = np.zeros_like(D)
+            if suns:
+                normals = np.array(table.normal, np.float64).T
+                cos = np.maximum(np.sum(normals * sun_dir, axis=1), 0.0)
+                seen = shading_init.seen_weight(
+                    table, [self.frozen.camera[f.index] for f in ctx.train_frames
+                            if f.index in self.frozen.camera]) > 0.05
+                rho = np.concatenate([model.nodes[n].numpy("lidar_albedo") for n in names]) \
+                    if any(f.lidar is not None for f in ctx.train_frames) else None
+                E, groups = shading_init.estimate_sun_irradiance(colour, D, vis, cos, normals,
+                                                                  seen, rho)
+                if E is None:   # no patch with both: the selection's sun/sky ratio
+                    sel = ctx.selection.get("sun", {})
+                    E = np.full(3, np.pi * sel.get("sun_to_sky", 1.0)
+                                * float(np.median(D[seen].mean(axis=1))) if seen.any() else 1.0)
+                E = np.maximum(E, 1e-3)
+                if self.learn_sun_visibility and rho is not None and ctx.config.weights.lidar2rgb > 0:
+                    # L_lidar->rgb's premise at the start: where the colour is
+                    # much darker than the LiDAR albedo predicts, the sun is
+                    # blocked. Shadows found that way also clean the groups
+                    # the irradiance is estimated from, so the two alternate.
+                    traced = vis
+                    for _ in range(2):
+                        vis, found = shading_init.shadows_from_lidar_albedo(colour, D, E, traced,
+                                                                            cos, seen, rho)
+                        E2, _ = shading_init.estimate_sun_irradiance(colour, D, vis, cos, normals,
+                                                                     seen, rho)
+                        if E2 is not None:
+                            E = np.maximum(E2, 1e-3)
+                    report["shadow_from_lidar_albedo"] = found
+                    for name, v in zip(names, shading_init.split_by_node(vis, table, counts)):
+                        model.nodes[name].values["sun_visibility"] = mi.Float(v.astype(np.float32))
+                ctx.params[ctx.sun_key] = mi.Color3f(*[float(x) for x in E])
+                ctx.params.update()
+                sun_term = E[None, :] * (vis * cos)[:, None] / np.pi
+                report.update(sun_irradiance=E.tolist(), facings=int(groups),
+                              shadowed=float(np.mean(vis[seen] < 0.5)) if seen.any() else 0.0)
+            albedo = shading_init.albedo_from_shading(colour, D, sun_term)
+            for name, a in zip(names, shading_init.split_by_node(albedo, table, counts)):
+                model.nodes[name].values["albedo"] = mi.Float(a.astype(np.float32).ravel())
+        self.build_optimizer()
+        return report
+
     # ---------------------------------------------------------- render
     def render_frame(self, frame, vals, camera=True, lidar=True):
         ctx = self.ctx
@@ -177,7 +277,8 @@ class Stage2:
         out = {}
         if camera and frame.index in self.frozen.camera and ctx.config.weights.rgb > 0:
             lighting = GaussianLighting(ctx.scene, nodes, ctx.config.samples,
-                                        self.frozen.caches[frame.index], trace_sun=True)
+                                        self.frozen.caches[frame.index],
+                                        trace_sun=not self.learn_sun_visibility)
             out["camera"] = camera_shaded(ctx.camera_integrator, ctx.scene, lighting, nodes,
                                           frame.camera.rays, self.frozen.camera[frame.index])
         if lidar and frame.index in self.frozen.lidar:
@@ -249,7 +350,7 @@ class Stage2:
         for key in list(self.opt.keys()):
             k = key.split(".", 1)[1]
             v = self.opt[key]
-            if k in ("albedo", "lidar_albedo"):
+            if k in ("albedo", "lidar_albedo", "sun_visibility"):
                 self.opt[key] = dr.clip(v, 0.0, 1.0)
             elif k == "roughness":
                 self.opt[key] = dr.clip(v, 0.02, 1.0)

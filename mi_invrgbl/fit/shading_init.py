@@ -1,0 +1,130 @@
+"""Stage 2's starting point: the sun's irradiance, and albedo that reproduces stage 1.
+
+Stage 1 leaves a view-independent colour ``c`` per Gaussian. Stage 2 explains
+it as albedo times shading; the Lambertian part of ``invrgbl``'s shading is
+
+    c = a (D + E v cos / pi)
+
+with ``D`` the Gaussian's sky term (mean of sky radiance times traced sky
+visibility over its samples), ``v`` its sun visibility, ``cos`` the sun's
+incidence and ``E`` the sun's irradiance.
+
+With free per-Gaussian albedo every ``E`` fits the images equally well, so
+``E`` must come from where albedo is shared, or known: the LiDAR albedo sees
+no shadows. Among Gaussians facing the same way, the sunlit and the shadowed
+groups' colours (divided by their LiDAR albedo) give
+
+    E = pi (c_lit / c_shadow * D_shadow - D_lit) / cos_lit
+
+with medians per group and per channel. Groups are whole facings, not small
+patches: a sun direction a few degrees off moves shadow edges by metres, so
+Gaussians near an edge are often in the wrong group, while the bulk of open
+sun and deep shadow is not.
+
+The albedo then starts at ``c / (D + E v cos / pi)``, so stage 2 starts from
+an image that already matches stage 1 instead of first fighting a wrong level.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import drjit as dr
+import mitsuba as mi
+
+from .selection import surface_patches
+
+#: Visibility thresholds of the two groups compared inside a patch.
+LIT, SHADOW = 0.7, 0.3
+#: Least Gaussians per group for a facing to count.
+MIN_GROUP = 20
+
+
+def seen_weight(table, frozen_hits):
+    """Per global Gaussian: the blend weight it gets summed over camera hits."""
+    w = np.zeros(table.total, np.float64)
+    for fh in frozen_hits:
+        g = np.array(table.global_index(fh.node_ids, fh.prims))
+        np.add.at(w, g, np.array(fh.weight, np.float64))
+    return w
+
+
+def estimate_sun_irradiance(colour, sky_term, visibility, cos, normals, seen, lidar_albedo=None):
+    """Per-channel sun irradiance from sunlit/shadowed colour ratios.
+
+    Gaussians are grouped by facing (dominant normal axis); in each facing
+    with enough sunlit and shadowed Gaussians the ratio of median colours
+    gives an estimate, and the count-weighted median over facings is kept.
+    Dividing the colour by the LiDAR albedo first (shading-free, the paper's
+    premise) removes most of the albedo differences between the two groups.
+
+    Returns ``(E (3,), groups used)``; ``E`` is None when no facing holds
+    enough of both.
+    """
+    ok = seen & np.all(np.isfinite(colour), axis=1) & np.all(colour > 1e-4, axis=1)
+    shading = colour if lidar_albedo is None else colour / np.maximum(lidar_albedo, 0.05)[:, None]
+    facing = surface_patches(np.zeros_like(normals), normals, size=1.0)
+    lit = ok & (visibility >= LIT) & (cos > 0.2)
+    shadow = ok & (visibility <= SHADOW)
+    estimates, counts = [], []
+    for f in np.unique(facing[ok]):
+        a, b = lit & (facing == f), shadow & (facing == f)
+        if a.sum() < MIN_GROUP or b.sum() < MIN_GROUP:
+            continue
+        ratio = np.median(shading[a], axis=0) / np.median(shading[b], axis=0)
+        d_lit, d_sh = np.median(sky_term[a], axis=0), np.median(sky_term[b], axis=0)
+        estimates.append(np.pi * (ratio * d_sh - d_lit) / np.median(cos[a]))
+        counts.append(min(a.sum(), b.sum()))
+    if not estimates:
+        return None, 0
+    est, w = np.array(estimates), np.array(counts, np.float64)
+    out = np.empty(3)
+    for c in range(3):   # weighted median per channel
+        order = np.argsort(est[:, c])
+        cum = np.cumsum(w[order])
+        out[c] = est[order[np.searchsorted(cum, 0.5 * cum[-1])], c]
+    return np.maximum(out, 0.0), len(estimates)
+
+
+def shadows_from_lidar_albedo(colour, sky_term, sun_irradiance, visibility, cos, seen,
+                              lidar_albedo, threshold=SHADOW):
+    """Mark as shadowed the Gaussians traced as sunlit whose colour says otherwise.
+
+    The RGB albedo is taken to follow the LiDAR albedo up to one spectral
+    scale ``k`` (the median over traced-sunlit Gaussians). A Gaussian's sun
+    visibility is then what its colour implies,
+    ``v = (c / (k rho) - D) pi / (E cos)`` in luminance; where that is below
+    ``threshold`` but the trace said sunlit (a shadow cast by geometry the fit
+    lacks, or a sun a few degrees off), ``v`` is lowered to it. Traced
+    shadows are kept: the trace rarely invents one.
+
+    Returns ``(visibility, fraction of seen Gaussians changed)``.
+    """
+    lum = np.array([0.2126, 0.7152, 0.0722])
+    c, d, e = colour @ lum, sky_term @ lum, float(sun_irradiance @ lum)
+    rho = np.maximum(lidar_albedo, 0.05)
+    usable = seen & (lidar_albedo > 0.05) & (cos > 0.2) & np.isfinite(c)
+    lit = usable & (visibility >= LIT)
+    if lit.sum() < MIN_GROUP or e <= 1e-4:   # no sun to be shadowed from
+        return visibility, 0.0
+    k = np.median(c[lit] / (rho[lit] * (d[lit] + e * visibility[lit] * cos[lit] / np.pi)))
+    implied = (c / (k * rho) - d) * np.pi / (e * np.maximum(cos, 0.2))
+    change = usable & (visibility >= 0.5) & (implied < threshold)
+    out = visibility.copy()
+    out[change] = np.clip(implied[change], 0.0, 1.0)
+    return out, float(change.sum() / max(seen.sum(), 1))
+
+
+def albedo_from_shading(colour, sky_term, sun_term):
+    """``c / (D + E v cos / pi)`` clipped into the albedo range."""
+    shading = np.maximum(sky_term + sun_term, 1e-3)
+    return np.clip(colour / shading, 0.02, 1.0)
+
+
+def split_by_node(values, table, counts):
+    """Global (G, ...) rows back into per-node blocks, in ``table``'s order."""
+    return [values[off:off + n] for off, n in zip(table.offsets, counts)]
+
+
+def as_rows(color3f):
+    """A Dr.Jit 3-vector array as a numpy (N, 3) array."""
+    return np.array(color3f, np.float64).T   # Dr.Jit gives (3, N)

@@ -1,0 +1,84 @@
+"""Stage 2's starting light and albedo (mi_invrgbl/fit/shading_init.py).
+
+Synthetic Gaussians with known albedo, sky term, sun irradiance and shadows
+are shaded with ``c = a (D + E v cos / pi)``; the estimators must recover
+``E``, find shadows the trace missed, and give back the albedo.
+"""
+
+import numpy as np
+import pytest
+
+from mi_invrgbl.fit import shading_init
+
+
+def _street(n=4000, e_sun=(3.0, 2.8, 2.5), missed=0.5, seed=0):
+    rng = np.random.default_rng(seed)
+    up = np.tile([0.0, 0.0, 1.0], (n, 1))
+    wall = np.tile([0.0, 1.0, 0.0], (n // 4, 1))
+    normals = np.concatenate([up, wall])
+    g = len(normals)
+    lidar = rng.uniform(0.2, 0.8, g)
+    albedo = lidar[:, None] * np.array([0.9, 1.0, 1.1])      # RGB follows LiDAR
+    sky = rng.uniform(0.15, 0.3, (g, 1)) * np.array([0.8, 0.9, 1.1])
+    cos = np.where(normals[:, 2] > 0.5, 0.8, 0.4)
+    true_v = (rng.uniform(size=g) > 0.3).astype(float)
+    E = np.array(e_sun)
+    colour = albedo * (sky + E[None] * (true_v * cos)[:, None] / np.pi)
+    # The trace misses a share of the shadows (geometry the fit lacks).
+    traced = true_v.copy()
+    shadow = np.nonzero(true_v == 0)[0]
+    traced[shadow[rng.uniform(size=shadow.size) < missed]] = 1.0
+    return dict(colour=colour, sky=sky, E=E, true_v=true_v, traced=traced, cos=cos,
+                normals=normals, lidar=lidar, albedo=albedo, seen=np.ones(g, bool))
+
+
+def test_irradiance_recovered_when_the_trace_is_right():
+    s = _street(missed=0.0)
+    E, groups = shading_init.estimate_sun_irradiance(s["colour"], s["sky"], s["traced"], s["cos"],
+                                                     s["normals"], s["seen"], s["lidar"])
+    assert groups == 2
+    assert np.allclose(E, s["E"], rtol=0.1), E
+
+
+def test_missed_shadows_are_found_from_the_lidar_albedo():
+    s = _street(missed=0.5)
+    v, changed = shading_init.shadows_from_lidar_albedo(s["colour"], s["sky"], s["E"], s["traced"],
+                                                        s["cos"], s["seen"], s["lidar"])
+    missed = (s["true_v"] == 0) & (s["traced"] == 1)
+    lit = s["true_v"] == 1
+    assert missed.any() and changed > 0
+    assert np.mean(v[missed] < 0.3) > 0.95          # the missed shadows are found
+    assert np.mean(v[lit] >= 0.5) > 0.99            # sunlit Gaussians stay sunlit
+    # With the shadows found, the albedo comes back (up to noise-free 1 %).
+    sun = s["E"][None] * (v * s["cos"])[:, None] / np.pi
+    a = shading_init.albedo_from_shading(s["colour"], s["sky"], sun)
+    assert np.allclose(a, np.clip(s["albedo"], 0.02, 1.0), rtol=0.02, atol=1e-3)
+    # The trace alone bakes the missed shadows into the albedo.
+    sun_traced = s["E"][None] * (s["traced"] * s["cos"])[:, None] / np.pi
+    baked = shading_init.albedo_from_shading(s["colour"], s["sky"], sun_traced)
+    assert np.median(baked[missed].sum(1) / s["albedo"][missed].sum(1)) < 0.5
+
+
+def test_no_groups_no_estimate_and_nan_colour_is_ignored():
+    s = _street()
+    all_lit = np.ones_like(s["traced"])
+    E, groups = shading_init.estimate_sun_irradiance(s["colour"], s["sky"], all_lit, s["cos"],
+                                                     s["normals"], s["seen"], s["lidar"])
+    assert E is None and groups == 0
+    colour = s["colour"].copy()
+    colour[::7] = np.nan
+    E, _ = shading_init.estimate_sun_irradiance(colour, s["sky"], s["true_v"], s["cos"],
+                                                s["normals"], s["seen"], s["lidar"])
+    assert np.all(np.isfinite(E))
+    v, _ = shading_init.shadows_from_lidar_albedo(colour, s["sky"], s["E"], s["traced"], s["cos"],
+                                                  s["seen"], s["lidar"])
+    assert np.all(np.isfinite(v)) and v.min() >= 0 and v.max() <= 1
+
+
+@pytest.mark.parametrize("e", [0.0, 1e-6])
+def test_no_sun_leaves_visibility_alone(e):
+    s = _street()
+    v, changed = shading_init.shadows_from_lidar_albedo(s["colour"], s["sky"], np.full(3, e),
+                                                        s["traced"], s["cos"], s["seen"], s["lidar"])
+    assert changed == 0.0
+    assert np.array_equal(v, s["traced"])
