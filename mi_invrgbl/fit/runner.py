@@ -408,6 +408,8 @@ def select_lighting(ctx):
     ctx.params[ctx.sky_key] = mi.Float(init.ravel())
     if ctx.use_sun:
         ctx.params[ctx.sun_dir_key] = mi.Vector3f(*s["direction"])
+        # A non-zero placeholder keeps the sun in the scene until stage 2's
+        # start (Stage2.init_shading) estimates its irradiance.
         e_sun = max(s.get("sun_level", 1.0) / 0.5, 0.1)
         ctx.params[ctx.sun_key] = mi.Color3f(e_sun, e_sun, e_sun)
     else:
