@@ -198,3 +198,18 @@ def test_sun_visibility_learned_or_traced(scene_path, tmp_path, mode):
     cam = [s for s in scene.sensors() if s.id() == "camera_0004"][0]
     img = np.array(mi.render(scene, sensor=cam, spp=2))
     assert np.isfinite(img).all() and img[..., :3].mean() > 0.05
+
+
+def test_resume_in_stage_2_keeps_learning_sun_visibility(scene_path, tmp_path):
+    # The learned v_sun is an optimiser variable: an interrupted stage 2 must
+    # restore it (and its moments) and go on writing it out.
+    from mi_invrgbl.plugins.gaussian_ply import read_ply
+    run_fit(scene_path, small_config(tmp_path, sun="on", stage2_iterations=16, render_samples="8"),
+            log=lambda *a: None)
+    lines = []
+    metrics = run_fit(scene_path, small_config(tmp_path, sun="on", stage2_iterations=24,
+                                               render_samples="8", resume=True), log=lines.append)
+    assert any("resuming" in str(line) for line in lines) and metrics["interrupted"] is False
+    assert 'name="sun_visibility" value="attribute"' in (tmp_path / "scene.xml").read_text()
+    v = read_ply(str(tmp_path / "background.ply")).sun_visibility
+    assert np.all((v >= 0) & (v <= 1)) and 0.02 < np.mean(v < 0.5) < 0.98

@@ -401,10 +401,7 @@ def select_lighting(ctx):
     mask = np.zeros((num_coeffs(emitter_order), 3), np.float32)
     mask[: num_coeffs(chosen)] = 1
     ctx.sh_mask = mi.Float(mask.ravel())
-    # Lighting levels: the stage-1 colour is albedo x light; with a mean
-    # albedo of 0.5 the regression's levels give the sky and sun magnitudes.
     s = sel["sun"]
-    sky_level = max(s.get("sky_level", 0.5), 0.05)
     ctx.params[ctx.sky_key] = mi.Float(init.ravel())
     if ctx.use_sun:
         ctx.params[ctx.sun_dir_key] = mi.Vector3f(*s["direction"])
@@ -416,7 +413,6 @@ def select_lighting(ctx):
         ctx.params[ctx.sun_key] = mi.Color3f(0.0)
     ctx.params.update()
     ctx.selection.update(sel)
-    ctx.sky_level = sky_level
     ctx.times["selection"] = time.perf_counter() - t
     ctx.log("[fit] lighting: sun %s (best direction %s explains %.1f %% of within-surface "
             "shading, %.1f %% beyond sky occlusion, typical direction %.1f %%; sun/sky %.2f); "

@@ -28,12 +28,10 @@ an image that already matches stage 1 instead of first fighting a wrong level.
 from __future__ import annotations
 
 import numpy as np
-import drjit as dr
-import mitsuba as mi
 
 from .selection import surface_patches
 
-#: Visibility thresholds of the two groups compared inside a patch.
+#: Visibility thresholds of the sunlit and shadowed groups compared.
 LIT, SHADOW = 0.7, 0.3
 #: Least Gaussians per group for a facing to count.
 MIN_GROUP = 20

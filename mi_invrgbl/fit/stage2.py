@@ -19,7 +19,8 @@ sun) sun visibility; the SH sky, the sun's irradiance; range/angle exponents
 and per-beam gains.
 
 Sun visibility is the paper's ``v_sun``: traced once through the frozen
-Gaussians (:meth:`Stage2.init_sun_visibility`), then learned. Shadows cast by
+Gaussians (:meth:`Stage2.init_shading`, which also finds shadows the trace
+missed from the LiDAR albedo), then learned. Shadows cast by
 what the fit lacks (walls above the LiDAR's top beam, thin or see-through
 Gaussians) would otherwise have to be explained as dark albedo; with
 ``L_lidar->rgb`` asking the albedo to be uniform where the LiDAR albedo is,
