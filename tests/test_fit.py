@@ -101,6 +101,19 @@ def test_resume_continues_from_checkpoint(scene_path, tmp_path):
     assert its[-1] == 24 and its == sorted(its)
 
 
+def test_resume_in_stage_2_keeps_the_sh_order(scene_path, tmp_path):
+    # The SH order is chosen before stage 2; a resumed stage 2 must keep the
+    # coefficients above it at zero rather than free all of them.
+    run_fit(scene_path, small_config(tmp_path, sh_order="0", stage2_iterations=16), log=lambda *a: None)
+    metrics = run_fit(scene_path, small_config(tmp_path, stage2_iterations=24, resume=True),
+                      log=lambda *a: None)
+    assert metrics["selection"]["sh"]["order"] == 0
+    assert 'name="order" value="0"' in (tmp_path / "scene.xml").read_text()
+    ckpt = np.load(tmp_path / "checkpoints" / "latest.npz")
+    sh = ckpt["sky/sh"].reshape(-1, 3)   # the scene's order-1 emitter: 4 coefficients
+    assert sh.shape[0] == 4 and np.all(sh[1:] == 0) and np.all(sh[0] > 0)
+
+
 def test_nan_step_is_rolled_back(scene_path, tmp_path, monkeypatch):
     from mi_invrgbl.fit import losses
     real = losses.rgb_loss

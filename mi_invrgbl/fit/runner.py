@@ -265,6 +265,11 @@ def load_checkpoint(ctx):
                             mi.Float(data["response/beam_gains"]))
     ctx.rng.bit_generator.state = meta["rng"]
     ctx.selection = meta.get("selection", {})
+    # The SH order chosen before the checkpoint still holds: without it a
+    # resumed stage 2 would free every coefficient up to the emitter's order.
+    order = ctx.selection.get("sh", {}).get("order")
+    if order is not None:
+        set_sh_order(ctx, order)
     ctx.use_sun = meta.get("use_sun", True)
     ctx.times.update(meta.get("times", {}))
     ctx.speed_log.rows = meta.get("log", [])
@@ -316,10 +321,18 @@ def _loop(ctx, stage_name, stage, start, total, evaluate, opt_getter):
 
 
 # ------------------------------------------------------------------ between stages
+def set_sh_order(ctx, order):
+    """Fit the sky at ``order``: higher coefficients stay zero (``ctx.sh_mask``)."""
+    from ..plugins.sh import num_coeffs
+    ctx.sh_order = int(order)
+    mask = np.zeros((num_coeffs(ctx.sky_emitter.order), 3), np.float32)
+    mask[: num_coeffs(ctx.sh_order)] = 1
+    ctx.sh_mask = mi.Float(mask.ravel())
+
+
 def select_lighting(ctx):
     """Sun and SH order from stage-1 colours and the directly seen sky."""
     from .selection import fit_sh_orders, pad_sh, select_sun
-    from ..plugins.sh import num_coeffs
     cfg = ctx.config
     t = time.perf_counter()
     ctx.model.push(ctx.train_frames[0].poses, stage=1)
@@ -397,10 +410,7 @@ def select_lighting(ctx):
     if cfg.sh_order != "auto":
         chosen = int(cfg.sh_order)
         sel["sh"]["order"], sel["sh"]["forced"] = chosen, True
-    ctx.sh_order = chosen
-    mask = np.zeros((num_coeffs(emitter_order), 3), np.float32)
-    mask[: num_coeffs(chosen)] = 1
-    ctx.sh_mask = mi.Float(mask.ravel())
+    set_sh_order(ctx, chosen)
     s = sel["sun"]
     ctx.params[ctx.sky_key] = mi.Float(init.ravel())
     if ctx.use_sun:
