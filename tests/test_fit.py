@@ -52,7 +52,7 @@ def test_outputs_written(fitted):
     assert saved["gaussians"]["background"] > 0
     assert saved["frames"]["held_out"] == [4]
     assert saved["peak_rss_mb"] > 0
-    for key in ("sun", "sh", "response_init", "lidar_lobe", "samples"):
+    for key in ("sun", "sh", "response_init", "lidar_lobe", "samples", "sky_lookalikes"):
         assert key in saved["selection"]
     chosen = saved["selection"]["samples"]
     assert set(chosen["by_samples"]) == {"4", "8", "16", "32"}

@@ -2,7 +2,8 @@
 
 Synthetic Gaussians with known albedo, sky term, sun irradiance and shadows
 are shaded with ``c = a (D + E v cos / pi)``; the estimators must recover
-``E``, find shadows the trace missed, and give back the albedo.
+``E``, find shadows the trace missed, drop shadows it invented, and give back
+the albedo.
 """
 
 import numpy as np
@@ -11,7 +12,7 @@ import pytest
 from mi_invrgbl.fit import shading_init
 
 
-def _street(n=4000, e_sun=(3.0, 2.8, 2.5), missed=0.5, seed=0):
+def _street(n=4000, e_sun=(3.0, 2.8, 2.5), missed=0.5, invented=0.0, seed=0):
     rng = np.random.default_rng(seed)
     up = np.tile([0.0, 0.0, 1.0], (n, 1))
     wall = np.tile([0.0, 1.0, 0.0], (n // 4, 1))
@@ -28,6 +29,9 @@ def _street(n=4000, e_sun=(3.0, 2.8, 2.5), missed=0.5, seed=0):
     traced = true_v.copy()
     shadow = np.nonzero(true_v == 0)[0]
     traced[shadow[rng.uniform(size=shadow.size) < missed]] = 1.0
+    # ... and casts some from geometry the scene lacks (walls above a roof).
+    sunlit = np.nonzero(true_v == 1)[0]
+    traced[sunlit[rng.uniform(size=sunlit.size) < invented]] = 0.0
     return dict(colour=colour, sky=sky, E=E, true_v=true_v, traced=traced, cos=cos,
                 normals=normals, lidar=lidar, albedo=albedo, seen=np.ones(g, bool))
 
@@ -42,11 +46,11 @@ def test_irradiance_recovered_when_the_trace_is_right():
 
 def test_missed_shadows_are_found_from_the_lidar_albedo():
     s = _street(missed=0.5)
-    v, changed = shading_init.shadows_from_lidar_albedo(s["colour"], s["sky"], s["E"], s["traced"],
-                                                        s["cos"], s["seen"], s["lidar"])
+    v, lowered, raised = shading_init.visibility_from_lidar_albedo(
+        s["colour"], s["sky"], s["E"], s["traced"], s["cos"], s["seen"], s["lidar"])
     missed = (s["true_v"] == 0) & (s["traced"] == 1)
     lit = s["true_v"] == 1
-    assert missed.any() and changed > 0
+    assert missed.any() and lowered > 0 and raised == 0
     assert np.mean(v[missed] < 0.3) > 0.95          # the missed shadows are found
     assert np.mean(v[lit] >= 0.5) > 0.99            # sunlit Gaussians stay sunlit
     # With the shadows found, the albedo comes back (up to noise-free 1 %).
@@ -57,6 +61,20 @@ def test_missed_shadows_are_found_from_the_lidar_albedo():
     sun_traced = s["E"][None] * (s["traced"] * s["cos"])[:, None] / np.pi
     baked = shading_init.albedo_from_shading(s["colour"], s["sky"], sun_traced)
     assert np.median(baked[missed].sum(1) / s["albedo"][missed].sum(1)) < 0.5
+
+
+def test_invented_shadows_are_dropped_and_true_ones_kept():
+    s = _street(missed=0.0, invented=0.3)
+    v, lowered, raised = shading_init.visibility_from_lidar_albedo(
+        s["colour"], s["sky"], s["E"], s["traced"], s["cos"], s["seen"], s["lidar"])
+    invented = (s["true_v"] == 1) & (s["traced"] == 0)
+    assert invented.any() and raised > 0.1 and lowered == 0
+    assert np.mean(v[invented] >= 0.7) > 0.95       # the invented shadows are gone
+    assert np.mean(v[s["true_v"] == 0] < 0.3) > 0.99  # true shadows stay
+    # Invented shadows would otherwise brighten those albedos by the sun/sky ratio.
+    sun = s["E"][None] * (v * s["cos"])[:, None] / np.pi
+    a = shading_init.albedo_from_shading(s["colour"], s["sky"], sun)
+    assert np.allclose(a, np.clip(s["albedo"], 0.02, 1.0), rtol=0.02, atol=1e-3)
 
 
 def test_no_groups_no_estimate_and_nan_colour_is_ignored():
@@ -70,15 +88,15 @@ def test_no_groups_no_estimate_and_nan_colour_is_ignored():
     E, _ = shading_init.estimate_sun_irradiance(colour, s["sky"], s["true_v"], s["cos"],
                                                 s["normals"], s["seen"], s["lidar"])
     assert np.all(np.isfinite(E))
-    v, _ = shading_init.shadows_from_lidar_albedo(colour, s["sky"], s["E"], s["traced"], s["cos"],
-                                                  s["seen"], s["lidar"])
+    v, _, _ = shading_init.visibility_from_lidar_albedo(colour, s["sky"], s["E"], s["traced"],
+                                                        s["cos"], s["seen"], s["lidar"])
     assert np.all(np.isfinite(v)) and v.min() >= 0 and v.max() <= 1
 
 
 @pytest.mark.parametrize("e", [0.0, 1e-6])
 def test_no_sun_leaves_visibility_alone(e):
     s = _street()
-    v, changed = shading_init.shadows_from_lidar_albedo(s["colour"], s["sky"], np.full(3, e),
-                                                        s["traced"], s["cos"], s["seen"], s["lidar"])
-    assert changed == 0.0
+    v, lowered, raised = shading_init.visibility_from_lidar_albedo(
+        s["colour"], s["sky"], np.full(3, e), s["traced"], s["cos"], s["seen"], s["lidar"])
+    assert lowered == 0.0 and raised == 0.0
     assert np.array_equal(v, s["traced"])

@@ -43,6 +43,9 @@ def add_parser(sub):
     p.add_argument("--sun-visibility", choices=("learn", "trace"), default="learn",
                    help="per-Gaussian sun visibility: traced at stage 2's start and then learned "
                         "(the paper's v_sun; shadows of occluders the fit lacks), or traced only")
+    p.add_argument("--keep-sky-lookalikes", action="store_true",
+                   help="keep stage-1 Gaussians that have the sky's colour and only sky behind "
+                        "them (default: removed before stage 2; they cast shadows no roof casts)")
     p.add_argument("--max-gaussians", type=int, default=800000, help="densification cap")
     p.add_argument("--checkpoint-every", type=int, default=50)
     p.add_argument("--eval-every", type=int, default=50)
@@ -74,7 +77,8 @@ def config_from_args(args):
                      checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
                      resume=args.resume, seed=args.seed,
                      per_frame_visibility=args.per_frame_visibility,
-                     sun_visibility=args.sun_visibility)
+                     sun_visibility=args.sun_visibility,
+                     prune_sky_lookalikes=not args.keep_sky_lookalikes)
 
 
 def run(args):

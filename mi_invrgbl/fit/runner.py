@@ -77,6 +77,7 @@ class FitConfig:
     sun_candidates: int = 48
     sun_gaussians: int = 20000
     per_frame_visibility: bool = False
+    prune_sky_lookalikes: bool = True  # drop sky-coloured Gaussians with only sky behind them
     sun_visibility: str = "learn"  # learn | trace: the paper's per-Gaussian v_sun, or traced only
 
     def to_json(self):
@@ -629,6 +630,14 @@ def run_fit(scene_path, config: FitConfig, log=print):
             if config.stage1_iterations > start_it:
                 _loop(ctx, "stage 1", s1, start_it, config.stage1_iterations,
                       lambda: (heldout_stage1(ctx), float("nan")), lambda: s1.opt)
+            if config.prune_sky_lookalikes:
+                t = time.perf_counter()
+                removed = s1.prune_sky_lookalikes()
+                ctx.selection["sky_lookalikes"] = {"removed": removed,
+                                                   "seconds": time.perf_counter() - t}
+                ctx.log("[fit] sky look-alikes: %s removed (sky-coloured Gaussians with only sky "
+                        "behind them; %.1f s)" % (", ".join("%s %d" % kv for kv in removed.items())
+                                                  or "none", time.perf_counter() - t))
             s1.pull()
             ctx.model.push(ctx.train_frames[0].poses, stage=1)
             start_it, opt_state = 0, None

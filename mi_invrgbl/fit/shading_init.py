@@ -83,33 +83,40 @@ def estimate_sun_irradiance(colour, sky_term, visibility, cos, normals, seen, li
     return np.maximum(out, 0.0), len(estimates)
 
 
-def shadows_from_lidar_albedo(colour, sky_term, sun_irradiance, visibility, cos, seen,
-                              lidar_albedo, threshold=SHADOW):
-    """Mark as shadowed the Gaussians traced as sunlit whose colour says otherwise.
+def visibility_from_lidar_albedo(colour, sky_term, sun_irradiance, visibility, cos, seen,
+                                 lidar_albedo, shadow=SHADOW, lit=LIT):
+    """Correct the traced sun visibility where the colour clearly says otherwise.
 
     The RGB albedo is taken to follow the LiDAR albedo up to one spectral
     scale ``k`` (the median over traced-sunlit Gaussians). A Gaussian's sun
     visibility is then what its colour implies,
-    ``v = (c / (k rho) - D) pi / (E cos)`` in luminance; where that is below
-    ``threshold`` but the trace said sunlit (a shadow cast by geometry the fit
-    lacks, or a sun a few degrees off), ``v`` is lowered to it. Traced
-    shadows are kept: the trace rarely invents one.
+    ``v = (c / (k rho) - D) pi / (E cos)`` in luminance. Where the trace says
+    sunlit and the colour implies less than ``shadow``, the shadow comes from
+    geometry the fit lacks (or a sun a few degrees off) and ``v`` is lowered
+    to it; where the trace says shadowed and the colour implies more than
+    ``lit``, the occluder is geometry the fit has but the scene has not (a
+    wall extended above a lower roof) and ``v`` is raised to it. In between,
+    the trace stands.
 
-    Returns ``(visibility, fraction of seen Gaussians changed)``.
+    Returns ``(visibility, share of seen Gaussians lowered, share raised)``.
     """
     lum = np.array([0.2126, 0.7152, 0.0722])
     c, d, e = colour @ lum, sky_term @ lum, float(sun_irradiance @ lum)
     rho = np.maximum(lidar_albedo, 0.05)
     usable = seen & (lidar_albedo > 0.05) & (cos > 0.2) & np.isfinite(c)
-    lit = usable & (visibility >= LIT)
-    if lit.sum() < MIN_GROUP or e <= 1e-4:   # no sun to be shadowed from
-        return visibility, 0.0
-    k = np.median(c[lit] / (rho[lit] * (d[lit] + e * visibility[lit] * cos[lit] / np.pi)))
+    traced_lit = usable & (visibility >= lit)
+    if traced_lit.sum() < MIN_GROUP or e <= 1e-4:   # no sun to be shadowed from
+        return visibility, 0.0, 0.0
+    k = np.median(c[traced_lit] / (rho[traced_lit]
+                                   * (d[traced_lit] + e * visibility[traced_lit] * cos[traced_lit] / np.pi)))
     implied = (c / (k * rho) - d) * np.pi / (e * np.maximum(cos, 0.2))
-    change = usable & (visibility >= 0.5) & (implied < threshold)
+    lower = usable & (visibility >= 0.5) & (implied < shadow)
+    raise_ = usable & (visibility < 0.5) & (implied > lit)
     out = visibility.copy()
+    change = lower | raise_
     out[change] = np.clip(implied[change], 0.0, 1.0)
-    return out, float(change.sum() / max(seen.sum(), 1))
+    n = max(seen.sum(), 1)
+    return out, float(lower.sum() / n), float(raise_.sum() / n)
 
 
 def albedo_from_shading(colour, sky_term, sun_term):

@@ -131,6 +131,30 @@ class Stage1:
             acc[0] += norm
             acc[1] += norm > 0
 
+    def prune_sky_lookalikes(self):
+        """Remove the Gaussians that only stand in for the sky
+        (:mod:`.sky_lookalikes`); returns the count removed per node."""
+        from .sky_lookalikes import find_sky_lookalikes
+        self.pull()
+        masks = find_sky_lookalikes(self.ctx, self.ctx.train_frames)
+        removed = {}
+        for name, drop in masks.items():
+            node = self.model.nodes[name]
+            if not drop.any() or drop.size != node.count:
+                continue
+            cloud = self.model.cloud(name, stage=1)
+            cloud.albedo = np.clip(node.numpy("colour"), 0, 1)
+            kept = _subset(cloud, ~drop)
+            self.model.set_cloud(name, kept, local=True)
+            self.model.nodes[name].values["colour"] = mi.Float(kept.albedo.astype(np.float32).ravel())
+            removed[name] = int(drop.sum())
+        if removed:
+            sky = self.opt["sky.sh"] if "sky.sh" in self.opt else None
+            self.build_optimizer()
+            if sky is not None:
+                self.opt["sky.sh"] = sky
+        return removed
+
     # ------------------------------------------------------------ densify
     def densify(self):
         """Prune transparent Gaussians, split/clone those with large gradients."""

@@ -247,17 +247,19 @@ class Stage2:
                 if self.learn_sun_visibility and rho is not None and ctx.config.weights.lidar2rgb > 0:
                     # L_lidar->rgb's premise at the start: where the colour is
                     # much darker than the LiDAR albedo predicts, the sun is
-                    # blocked. Shadows found that way also clean the groups
-                    # the irradiance is estimated from, so the two alternate.
+                    # blocked; where much brighter, it is not. Corrections
+                    # also clean the groups the irradiance is estimated
+                    # from, so the two alternate.
                     traced = vis
                     for _ in range(2):
-                        vis, found = shading_init.shadows_from_lidar_albedo(colour, D, E, traced,
-                                                                            cos, seen, rho)
+                        vis, lowered, raised = shading_init.visibility_from_lidar_albedo(
+                            colour, D, E, traced, cos, seen, rho)
                         E2, _ = shading_init.estimate_sun_irradiance(colour, D, vis, cos, normals,
                                                                      seen, rho)
                         if E2 is not None:
                             E = np.maximum(E2, 1e-3)
-                    report["shadow_from_lidar_albedo"] = found
+                    report["lidar_albedo_shadowed"] = lowered
+                    report["lidar_albedo_unshadowed"] = raised
                     for name, v in zip(names, shading_init.split_by_node(vis, table, counts)):
                         model.nodes[name].values["sun_visibility"] = mi.Float(v.astype(np.float32))
                 ctx.params[ctx.sun_key] = mi.Color3f(*[float(x) for x in E])

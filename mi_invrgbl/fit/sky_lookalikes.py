@@ -1,0 +1,129 @@
+"""Gaussians that only stand in for the sky.
+
+Stage 1 fits a view-independent colour per Gaussian and the SH sky behind
+them. A Gaussian seen in front of the sky can take the sky's colour; the
+image then cannot tell it from empty space, its opacity gets no gradient
+and it stays. The import's wall extensions (facades continued above the
+LiDAR's top beam, whose height the LiDAR cannot see) end this way above
+every roof lower than the extension: walls made of sky. They would cast
+shadows and hide sky that is not there, pull the sun search towards
+directions that shorten those shadows and darken the albedo under them.
+
+A Gaussian is a *sky look-alike* when it has the sky's colour (within
+``tolerance`` of the sky radiance along the rays that see it) and, with
+every sky-coloured Gaussian removed from those rays, the camera would see
+the sky there (within ``tolerance``), averaged over the training pixels it
+contributes to with its blend weight. Removing such Gaussians leaves the
+images as they are. The second test keeps a real sky-blue wall in front of
+a darker building: removing it would reveal the building. Rays are traced
+deep (transmittance down to 1e-4) so that what such a wall hides is found;
+rays cut off before that give no evidence.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import drjit as dr
+import mitsuba as mi
+
+from ..plugins import hits as hitlib
+from .render import environment_radiance
+
+
+def _segment_exclusive_cumsum(values, ray):
+    """Per hit, the sum of ``values`` over the earlier hits of its ray (hits grouped by ray)."""
+    if values.shape[0] == 0:
+        return values.copy()
+    incl = np.cumsum(values, axis=0)
+    segment = np.cumsum(np.r_[True, ray[1:] != ray[:-1]]) - 1
+    starts = np.r_[0, np.nonzero(ray[1:] != ray[:-1])[0] + 1]
+    before = np.concatenate([np.zeros((1,) + values.shape[1:]), incl[starts[1:] - 1]])
+    return incl - before[segment] - values
+
+
+def frame_statistics(scene, rays, max_hits=64, min_transmittance=1e-4, tolerance=0.15):
+    """Per Gaussian hit of one camera frame: ``(node ids, prims, blend weight,
+    colour mismatch, background mismatch)``.
+
+    The colour mismatch is ``|c - sky| / |sky|`` with the sky radiance along
+    the ray. The background mismatch is the ray's: how far what the camera
+    would see with every hit within ``tolerance`` of the sky's colour removed
+    (the rest re-blended) is from the sky, relative to ``|sky|``. Trace deep (small
+    ``min_transmittance``) so that what a sky-coloured layer hides is found.
+    """
+    nodes = hitlib.gaussian_nodes(scene)
+    hl = hitlib.trace(scene, rays, max_hits, min_transmittance, nodes)
+    g = hitlib.eval_gaussian_hits(nodes, rays, hl)
+    w, t_end = hitlib.blend_weights(g)
+    colour = hitlib.gather_attribute(nodes, "albedo", g.node_ids, g.prims, g.active)
+    sky_ray = mi.Color3f(environment_radiance(scene, rays.d))
+    n_rays = g.n_rays
+    active = np.broadcast_to(np.array(g.active, bool), (dr.width(g.slot),)) \
+        & (np.array(g.slot) < n_rays * g.max_hits)
+    order = np.argsort(np.array(g.slot)[active], kind="stable")   # by ray, front to back
+
+    def per_hit(values, dtype=np.float64):
+        return np.asarray(values, dtype)[active][order]
+
+    def per_ray(values):
+        return np.broadcast_to(np.array(values, np.float64), (n_rays,))
+
+    ray = per_hit(g.ray, np.int64)
+    alpha = np.clip(per_hit(g.alpha), 0.0, 1.0 - 1e-7)
+    w = per_hit(w)
+    c = np.stack([per_hit(colour[k]) for k in range(3)], 1)
+    sky_rays = np.stack([per_ray(sky_ray[k]) for k in range(3)], 1)
+    sky = sky_rays[ray]
+    scale = np.maximum(np.linalg.norm(sky, axis=1), 1e-3)
+    colour_off = np.linalg.norm(c - sky, axis=1) / scale
+    # What the camera would see with the sky-coloured hits removed.
+    keep = colour_off >= tolerance
+    log_t = np.where(keep, np.log1p(-alpha), 0.0)
+    w_kept = keep * alpha * np.exp(_segment_exclusive_cumsum(log_t, ray))
+    t_kept = np.zeros(n_rays)
+    np.add.at(t_kept, ray, log_t)
+    revealed = np.exp(t_kept)[:, None] * sky_rays
+    np.add.at(revealed, ray, w_kept[:, None] * c)
+    behind = np.linalg.norm(revealed - sky_rays, axis=1) / np.maximum(np.linalg.norm(sky_rays, axis=1), 1e-3)
+    # A ray cut off at max_hits or min_transmittance never showed what is
+    # behind its last hits: no evidence that removal is harmless.
+    cut = (per_ray(hl.count) >= max_hits) | (per_ray(t_end) < min_transmittance)
+    behind[cut] = np.inf
+    return per_hit(g.node_ids, np.uint32), per_hit(g.prims, np.int64), w, colour_off, behind[ray]
+
+
+def accumulate(acc, shape_ids, stats):
+    """Add one frame's :func:`frame_statistics` into ``acc`` ({node: (count, 3) array}
+    of weight, weight x colour mismatch, weight x background mismatch)."""
+    ids, prims, w, c_off, b_off = stats
+    for name, sid in shape_ids.items():
+        m = ids == sid
+        a = acc[name]
+        np.add.at(a[:, 0], prims[m], w[m])
+        np.add.at(a[:, 1], prims[m], w[m] * c_off[m])
+        np.add.at(a[:, 2], prims[m], w[m] * b_off[m])
+
+
+def lookalike_masks(acc, tolerance=0.15, min_weight=0.05):
+    """Per node: seen (summed weight above ``min_weight``), with mean colour
+    and background mismatches below ``tolerance``."""
+    out = {}
+    for name, a in acc.items():
+        wsum = np.maximum(a[:, 0], 1e-12)
+        out[name] = (a[:, 0] > min_weight) & (a[:, 1] / wsum < tolerance) & (a[:, 2] / wsum < tolerance)
+    return out
+
+
+def find_sky_lookalikes(ctx, frames, tolerance=0.15, min_weight=0.05, stage=1):
+    """Boolean mask per node name: Gaussians whose colour and background both
+    match the sky wherever the training cameras see them."""
+    acc = {name: np.zeros((node.count, 3)) for name, node in ctx.model.nodes.items()}
+    with dr.suspend_grad():
+        for f in frames:
+            if f.camera is None:
+                continue
+            ctx.model.push(f.poses, stage=stage)
+            accumulate(acc, ctx.model.shape_ids,
+                       frame_statistics(ctx.scene, f.camera.rays, max(ctx.config.max_hits, 64), 1e-4,
+                                        tolerance))
+    return lookalike_masks(acc, tolerance, min_weight)

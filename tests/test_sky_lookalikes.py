@@ -1,0 +1,94 @@
+"""Gaussians that only stand in for the sky (mi_invrgbl/fit/sky_lookalikes.py).
+
+Three semi-transparent walls face a row of cameras under a uniform sky:
+a sky-coloured wall with nothing behind it (a wall extended above a lower
+roof), the same sky-coloured wall in front of a dark building, and a dark
+wall in front of the sky. Only the first may go: removing it leaves every
+pixel as it is, removing either of the others does not.
+"""
+
+import numpy as np
+import drjit as dr
+import mitsuba as mi
+
+from mi_invrgbl.fit.sky_lookalikes import accumulate, frame_statistics, lookalike_masks
+
+SKY = np.array([0.3, 0.38, 0.5])
+
+
+def wall(shape_id, x, y0, y1, colour, opacity, spacing=0.1):
+    ys = np.arange(y0, y1 + 1e-6, spacing)
+    zs = np.arange(0.0, 2.0 + 1e-6, spacing)
+    Y, Z = np.meshgrid(ys, zs)
+    c = np.stack([np.full(Y.size, x), Y.ravel(), Z.ravel()], 1).astype(np.float32)
+    # Jittered in depth too: discs entered at the same distance would hide
+    # each other from the traversal (it steps just past each entry point).
+    c += np.random.default_rng(2).uniform(-0.03, 0.03, c.shape).astype(np.float32)
+    n = c.shape[0]
+    s = 1.1 * spacing
+    t = lambda a: mi.TensorXf(np.asarray(a, np.float32))  # noqa: E731
+    return {"type": "gaussians", "id": shape_id, "centers": t(c),
+            "scales": t(np.tile([[1e-3, s, s]], (n, 1))), "opacities": t(np.full(n, opacity)),
+            "normals": t(np.tile([[-1.0, 0, 0]], (n, 1))), "albedo": t(np.tile([colour], (n, 1)))}
+
+
+def test_only_the_sky_coloured_wall_against_the_sky_is_a_lookalike():
+    # Order-0 SH: radiance = c0 * 0.2821, the same in every direction.
+    sh = " ".join("%.6f" % (v / 0.28209479) for v in SKY)
+    scene = mi.load_dict({
+        "type": "scene",
+        "sky": {"type": "shsun", "order": 0, "sh": sh, "sun_irradiance": [0.0, 0.0, 0.0]},
+        "phantom": wall("phantom", 5.0, -4.0, -2.0, SKY, 0.3),
+        "front": wall("front", 5.0, 2.0, 4.0, SKY, 0.3),
+        "building": wall("building", 8.0, 1.0, 5.0, (0.05, 0.05, 0.05), 0.99),
+        "dark": wall("dark", 5.0, -1.0, 1.0, (0.1, 0.08, 0.06), 0.3),
+    })
+    # Parallel rays towards +x through all three walls' middles.
+    ys, zs = np.meshgrid(np.linspace(-3.8, 3.8, 160), np.linspace(0.3, 1.7, 20))
+    o = mi.Point3f(mi.Float(np.zeros(ys.size)), mi.Float(ys.ravel()), mi.Float(zs.ravel()))
+    rays = mi.Ray3f(o, mi.Vector3f(dr.ones(mi.Float, ys.size), 0.0, 0.0))
+    from mi_invrgbl.plugins import hits as hitlib
+    ids = {s.id(): hitlib.shape_id(s) for s in scene.shapes()}
+    acc = {name: np.zeros((dr.width(mi.traverse(scene)[name + ".opacities"]), 3)) for name in ids}
+    with dr.suspend_grad():
+        stats = frame_statistics(scene, rays)
+    assert all(np.all(np.isfinite(a)) for a in stats[:3])
+    accumulate(acc, ids, stats)
+    masks = lookalike_masks(acc)
+    seen = {name: acc[name][:, 0] > 0.05 for name in ids}
+    for name in ids:
+        print(name, seen[name].sum(), masks[name].sum())
+    assert seen["phantom"].sum() > 50
+    assert np.mean(masks["phantom"][seen["phantom"]]) > 0.9
+    for name in ("front", "building", "dark"):
+        assert seen[name].sum() > 50 and not masks[name].any(), name
+
+
+def test_no_hits_no_lookalikes():
+    scene = mi.load_dict({"type": "scene", "sky": {"type": "shsun", "order": 0, "sh": "1 1 1"},
+                          "far": wall("far", 50.0, -1.0, 1.0, SKY, 0.3)})
+    rays = mi.Ray3f(mi.Point3f(dr.zeros(mi.Float, 8), 0.0, 1.0), mi.Vector3f(dr.zeros(mi.Float, 8), 0.0, 1.0))
+    with dr.suspend_grad():
+        ids, prims, w, c_off, b_off = frame_statistics(scene, rays)
+    assert ids.size == 0 and w.size == 0
+    acc = {"far": np.zeros((441, 3))}
+    accumulate(acc, {"far": 1}, (ids, prims, w, c_off, b_off))
+    assert not lookalike_masks(acc)["far"].any()
+
+
+def test_a_wall_too_dense_to_see_through_gives_no_evidence():
+    # Behind an opaque sky-coloured wall the trace ends: whether sky or a
+    # building is behind it is unknown, so it is kept.
+    sh = " ".join("%.6f" % (v / 0.28209479) for v in SKY)
+    scene = mi.load_dict({"type": "scene", "sky": {"type": "shsun", "order": 0, "sh": sh},
+                          "opaque": wall("opaque", 5.0, -1.0, 1.0, SKY, 0.99)})
+    ys = np.linspace(-0.8, 0.8, 64)
+    rays = mi.Ray3f(mi.Point3f(mi.Float(np.zeros(64)), mi.Float(ys), mi.Float(np.ones(64))),
+                    mi.Vector3f(dr.ones(mi.Float, 64), 0.0, 0.0))
+    with dr.suspend_grad():
+        stats = frame_statistics(scene, rays)
+    acc = {"opaque": np.zeros((dr.width(mi.traverse(scene)["opaque.opacities"]), 3))}
+    from mi_invrgbl.plugins import hits as hitlib
+    accumulate(acc, {"opaque": hitlib.shape_id(scene.shapes()[0])}, stats)
+    assert (acc["opaque"][:, 0] > 0.05).sum() > 5
+    assert not lookalike_masks(acc)["opaque"].any()
