@@ -38,6 +38,9 @@ def add_parser(subparsers):
     p.add_argument("--step", type=float, default=d.step,
                    help="ego travel per frame in metres (default %(default)s)")
     p.add_argument("--no-night", action="store_true", help="skip the night renders")
+    p.add_argument("--bsdf", choices=("roughplastic", "cooktorrance"), default=d.bsdf,
+                   help="BSDF of the true materials: Mitsuba's roughplastic (default) or the "
+                        "paper's cooktorrance, the family 'fit' searches")
     p.set_defaults(run=run)
     return p
 
@@ -48,7 +51,7 @@ def config_from_args(args):
                         height=args.height, fov=args.fov, spp=args.spp,
                         max_depth=args.max_depth, beams=args.beams,
                         azimuth_steps=args.azimuth_steps, step=args.step,
-                        night=not args.no_night)
+                        night=not args.no_night, bsdf=args.bsdf)
 
 
 def run(args) -> int:

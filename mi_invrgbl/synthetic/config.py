@@ -8,6 +8,10 @@ import os
 from ..errors import UserError
 
 
+#: BSDFs the street's materials can be rendered with.
+BSDFS = ("roughplastic", "cooktorrance")
+
+
 @dataclasses.dataclass
 class StreetConfig:
     """Everything that changes the generated street; same values -> same bytes."""
@@ -24,6 +28,7 @@ class StreetConfig:
     step: float = 1.0           #: ego travel per frame (metres)
     frame_rate: float = 10.0    #: frames per second (times.txt)
     night: bool = True          #: also render the night images
+    bsdf: str = "roughplastic"  #: roughplastic (Mitsuba's) | cooktorrance (the paper's model)
 
     def validate(self) -> "StreetConfig":
         """Raise :class:`UserError` naming the first bad option."""
@@ -40,6 +45,8 @@ class StreetConfig:
             raise UserError("--fov must lie between 10 and 150 degrees (got %s)" % self.fov)
         if not 0.0 < self.step <= 5.0:
             raise UserError("--step must lie in (0, 5] metres (got %s)" % self.step)
+        if self.bsdf not in BSDFS:
+            raise UserError("--bsdf must be one of %s (got %r)" % (", ".join(BSDFS), self.bsdf))
         if self.seed < 0:
             raise UserError("--seed must be non-negative (got %s)" % self.seed)
         return self

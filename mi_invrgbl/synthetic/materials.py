@@ -1,12 +1,17 @@
 """The true material of every mesh, and the road's texture.
 
-Each mesh of the street carries exactly one :class:`Material`. The renders use
-Mitsuba's stock ``roughplastic`` BSDF (GGX with ``alpha = roughness``, inner
+Each mesh of the street carries exactly one :class:`Material`. By default the
+renders use Mitsuba's stock ``roughplastic`` BSDF (GGX with ``alpha = roughness``, inner
 IOR 1.5 so that its Fresnel reflectance at normal incidence is 0.04 = ``f0``):
 it has the paper's two lobes, a Lambertian base of albedo ``albedo`` and a
 GGX specular coat. (Its diffuse lobe is additionally scaled by the coat's
-Fresnel transmission, about 0.9 at moderate angles; the recorded ``albedo``
-is the BSDF's ``diffuse_reflectance``, the value a fit should recover.)
+Fresnel transmission in and out and by ``1 / eta^2``, about 0.4 in all, and its
+Smith shadowing dims the specular lobe at grazing angles more than the
+paper's V-cavity term does; the recorded ``albedo`` is the BSDF's
+``diffuse_reflectance``, the value a fit should recover up to scale.)
+``make-scene --bsdf cooktorrance`` renders with the paper's own model instead
+(the ``cooktorrance`` plugin), so that the truth lies in the family ``fit``
+searches: what remains then is the inverse problem, not a model mismatch.
 
 ``lidar_albedo`` is the reflectance at the LiDAR's near-infrared wavelength.
 It differs from the RGB albedo on purpose (vegetation is bright in the
@@ -49,15 +54,22 @@ class Material:
         d["albedo"] = [float(c) for c in self.albedo]
         return d
 
-    def bsdf_xml(self) -> str:
-        """The stock ``roughplastic`` that renders this material, as XML."""
+    def bsdf_xml(self, kind: str = "roughplastic") -> str:
+        """The BSDF that renders this material, as XML: Mitsuba's stock
+        ``roughplastic`` (default) or the paper's own ``cooktorrance``."""
+        name = "diffuse_reflectance" if kind == "roughplastic" else "albedo"
         if self.albedo_texture:
-            diffuse = ('<texture type="bitmap" name="diffuse_reflectance">'
+            diffuse = ('<texture type="bitmap" name="%s">'
                        '<string name="filename" value="%s"/>'
                        '<string name="filter_type" value="bilinear"/></texture>'
-                       % self.albedo_texture)
+                       % (name, self.albedo_texture))
         else:
-            diffuse = '<rgb name="diffuse_reflectance" value="%.6f %.6f %.6f"/>' % tuple(self.albedo)
+            diffuse = '<rgb name="%s" value="%.6f %.6f %.6f"/>' % ((name,) + tuple(self.albedo))
+        if kind == "cooktorrance":
+            return ('<bsdf type="cooktorrance" id="mat_%s">'
+                    '<float name="roughness" value="%.6f"/><float name="f0" value="%.6f"/>'
+                    '<float name="lidar_albedo" value="%.6f"/>%s</bsdf>'
+                    % (self.name, max(self.roughness, 1e-3), self.f0, self.lidar_albedo, diffuse))
         return ('<bsdf type="roughplastic" id="mat_%s">'
                 '<string name="distribution" value="ggx"/>'
                 '<float name="alpha" value="%.6f"/>'

@@ -56,7 +56,7 @@ def scene_xml(kind: str, config, layout, mesh_files: dict, sensor_to_world: np.n
            '<string name="pixel_format" value="rgb"/></film></sensor>\n'
            % (config.fov, matrix_xml(sensor_to_world), config.spp, config.width, config.height)]
     for mat in layout.materials.values():
-        out.append(mat.bsdf_xml() + "\n")
+        out.append(mat.bsdf_xml(getattr(config, "bsdf", "roughplastic")) + "\n")
     for part in layout.parts:
         transform = matrix_xml(car_pose0) if part.dynamic else ""
         out.append('<shape type="ply" id="%s"><string name="filename" value="%s"/>'
