@@ -179,10 +179,12 @@ def _geometry_key(nodes):
     return tuple((n.id, n.data.index, n.count) for n in nodes)
 
 
-def _light_key(scene, lights):
+def _light_key(scene, lights, trace_sun=True):
     key = []
     for kind, emitter in lights:
-        if kind == "sun":
+        if kind == "sun" and not trace_sun:
+            key.append("sun: stored visibility")   # its direction moves nothing cached
+        elif kind == "sun":
             key.append(tuple(np.array(dr.detach(emitter.sun_direction_world())).ravel().round(7)))
         else:
             key.append(tuple(np.array(emitter.world_transform().matrix, np.float64).ravel().round(7)))
@@ -199,7 +201,8 @@ class GaussianLighting:
         if self.table.total == 0:
             return
         with dr.suspend_grad():
-            key = (_geometry_key(nodes), _light_key(scene, self.lights), self.samples, trace_sun)
+            key = (_geometry_key(nodes), _light_key(scene, self.lights, trace_sun), self.samples,
+                   trace_sun)
         table = self.table.load_geometry()
         M, G = self.samples, self.table.total
         frames = mi.Frame3f(dr.gather(mi.Vector3f, table.normal,

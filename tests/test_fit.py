@@ -213,6 +213,27 @@ def test_sun_visibility_learned_or_traced(scene_path, tmp_path, mode):
     assert np.isfinite(img).all() and img[..., :3].mean() > 0.05
 
 
+@pytest.mark.parametrize("learn", [True, False])
+def test_stage_2_refines_the_sun_direction(scene_path, tmp_path, learn):
+    # With learned v_sun the sun direction is a stage-2 variable: it moves
+    # from the selection's, stays a unit vector above the horizon and is
+    # written out; switched off (or with traced shadows) it stays put.
+    import xml.etree.ElementTree as ET
+    metrics = run_fit(scene_path, small_config(tmp_path, sun="on", render_samples="8",
+                                               learn_sun_direction=learn), log=lambda *a: None)
+    chosen = np.array(metrics["selection"]["sun"]["direction"])
+    em = [e for e in ET.parse(tmp_path / "scene.xml").getroot().iter("emitter")
+          if e.get("type") == "shsun"][0]
+    v = [c for c in em if c.get("name") == "sun_direction"][0]
+    d = np.array([float(v.get(k)) for k in "xyz"])
+    assert abs(np.linalg.norm(d) - 1) < 1e-4 and d[2] > 0.03
+    moved = np.degrees(np.arccos(np.clip(d @ chosen / np.linalg.norm(chosen), -1, 1)))
+    if learn:
+        assert 0.01 < moved < 20, moved
+    else:
+        assert moved < 1e-3, moved
+
+
 def test_resume_in_stage_2_keeps_learning_sun_visibility(scene_path, tmp_path):
     # The learned v_sun is an optimiser variable: an interrupted stage 2 must
     # restore it (and its moments) and go on writing it out.

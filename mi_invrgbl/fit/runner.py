@@ -77,6 +77,7 @@ class FitConfig:
     sun_candidates: int = 48
     sun_gaussians: int = 20000
     per_frame_visibility: bool = False
+    learn_sun_direction: bool = True   # stage 2 refines the selected sun direction
     prune_sky_lookalikes: bool = True  # drop sky-coloured Gaussians with only sky behind them
     sun_visibility: str = "learn"  # learn | trace: the paper's per-Gaussian v_sun, or traced only
 
@@ -435,6 +436,22 @@ def select_lighting(ctx):
                                      s.get("sun_to_sky", float("nan")), chosen, ctx.times["selection"]))
 
 
+def report_sun_refinement(ctx):
+    """Record (and log) how far stage 2 moved the selected sun direction."""
+    sun = ctx.selection.get("sun", {})
+    if not ctx.use_sun or "direction" not in sun:
+        return
+    d = np.array(dr.detach(ctx.params[ctx.sun_dir_key]), np.float64).ravel()
+    d /= max(np.linalg.norm(d), 1e-12)
+    d0 = np.asarray(sun["direction"], np.float64)
+    d0 /= max(np.linalg.norm(d0), 1e-12)
+    moved = float(np.degrees(np.arccos(np.clip(d @ d0, -1.0, 1.0))))
+    sun["fitted_direction"], sun["moved_deg"] = d.tolist(), moved
+    if moved > 0:
+        ctx.log("[fit] sun direction refined in stage 2: %s -> %s (%.1f deg)"
+                % (np.round(d0, 3).tolist(), np.round(d, 3).tolist(), moved))
+
+
 def init_materials(ctx, frozen):
     """LiDAR albedo and response from a log-linear regression over the
     training scans."""
@@ -673,6 +690,7 @@ def run_fit(scene_path, config: FitConfig, log=print):
             _loop(ctx, "stage 2", stage2, start_it, config.stage2_iterations,
                   lambda: heldout_stage2(ctx, stage2), lambda: stage2.opt)
         stage2.commit()
+        report_sun_refinement(ctx)
         t = time.perf_counter()
         ctx.selection["lidar_lobe"] = select_lidar_lobe(ctx, stage2, frozen)
         ctx.times["lobe selection"] = time.perf_counter() - t

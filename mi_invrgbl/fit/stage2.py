@@ -15,8 +15,8 @@ An iteration is then gathers and sums over cached arrays:
 * ``L_nor`` / ``L_mat``: prior maps, where a frame has them.
 
 Optimised: per-Gaussian normal, albedo, roughness, LiDAR albedo and (with a
-sun) sun visibility; the SH sky, the sun's irradiance; range/angle exponents
-and per-beam gains.
+sun) sun visibility; the SH sky, the sun's irradiance and (with learned sun
+visibility) its direction; range/angle exponents and per-beam gains.
 
 Sun visibility is the paper's ``v_sun``: traced once through the frozen
 Gaussians (:meth:`Stage2.init_shading`, which also finds shadows the trace
@@ -47,7 +47,8 @@ from .superpixels import slic_labels
 SHADOW_OFFSET = 0.1
 
 STAGE2_LR = {"normal": 5e-3, "albedo": 1e-2, "roughness": 1e-2, "lidar_albedo": 1e-2,
-             "sun_visibility": 2e-2, "sky": 1e-2, "sun": 2e-2, "range_exponent": 2e-3, "angle_exponent": 2e-3,
+             "sun_visibility": 2e-2, "sky": 1e-2, "sun": 2e-2, "sun_direction": 2e-3,
+             "range_exponent": 2e-3, "angle_exponent": 2e-3,
              "beam_gains": 1e-2}
 
 
@@ -139,6 +140,11 @@ class Stage2:
             if ctx.sun_key is not None and ctx.use_sun:
                 values["sky.sun_irradiance"] = ctx.params[ctx.sun_key]
                 lrs["sky.sun_irradiance"] = STAGE2_LR["sun"]
+            if self.learn_sun_visibility and ctx.config.learn_sun_direction:
+                # With v_sun stored per Gaussian the direction moves only the
+                # shading (n.l, the specular lobe), never a cached trace.
+                values["sky.sun_direction"] = ctx.params[ctx.sun_dir_key]
+                lrs["sky.sun_direction"] = STAGE2_LR["sun_direction"]
         if ctx.config.weights.lidar > 0:
             r = ctx.response
             values["response.range_exponent"] = r.range_exponent
@@ -165,7 +171,9 @@ class Stage2:
             ctx.params[ctx.sky_key] = vals["sky.sh"] * mask if mask is not None else vals["sky.sh"]
         if "sky.sun_irradiance" in vals:
             ctx.params[ctx.sun_key] = vals["sky.sun_irradiance"]
-        if "sky.sh" in vals or "sky.sun_irradiance" in vals:
+        if "sky.sun_direction" in vals:
+            ctx.params[ctx.sun_dir_key] = vals["sky.sun_direction"]
+        if any(k in vals for k in ("sky.sh", "sky.sun_irradiance", "sky.sun_direction")):
             ctx.params.update()
         return vals
 
@@ -187,6 +195,8 @@ class Stage2:
                 ctx.params[ctx.sky_key] = value * mask if mask is not None else value
             elif key == "sky.sun_irradiance":
                 ctx.params[ctx.sun_key] = value
+            elif key == "sky.sun_direction":
+                ctx.params[ctx.sun_dir_key] = value
             else:
                 ctx.model.set(key, mi.Float(value))
         ctx.params.update()
@@ -361,6 +371,11 @@ class Stage2:
                 # Never exactly 0: shsun would then drop the sun (has_sun), the
                 # lighting cache key would change and the sun could not come back.
                 self.opt[key] = dr.maximum(v, 1e-4)
+            elif k == "sun_direction":
+                # A unit vector above the horizon (2 degrees at least).
+                d = dr.normalize(v)
+                d.z = dr.maximum(d.z, 0.035)
+                self.opt[key] = dr.normalize(d)
             elif k == "beam_gains":
                 self.opt[key] = dr.maximum(v, 1e-4)
             elif k in ("range_exponent", "angle_exponent"):
