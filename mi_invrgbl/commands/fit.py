@@ -43,9 +43,9 @@ def add_parser(sub):
     p.add_argument("--sun-visibility", choices=("learn", "trace"), default="learn",
                    help="per-Gaussian sun visibility: traced at stage 2's start and then learned "
                         "(the paper's v_sun; shadows of occluders the fit lacks), or traced only")
-    p.add_argument("--fixed-sun-direction", action="store_true",
-                   help="keep the selected sun direction in stage 2 (default: refined along "
-                        "with the learned sun visibility)")
+    p.add_argument("--learn-sun-direction", action="store_true",
+                   help="also refine the selected sun direction in stage 2 (with learned sun "
+                        "visibility; it moves only the n.l shading, so albedo can absorb it)")
     p.add_argument("--keep-sky-lookalikes", action="store_true",
                    help="keep stage-1 Gaussians that have the sky's colour and only sky behind "
                         "them (default: removed before stage 2; they cast shadows no roof casts)")
@@ -82,7 +82,7 @@ def config_from_args(args):
                      per_frame_visibility=args.per_frame_visibility,
                      sun_visibility=args.sun_visibility,
                      prune_sky_lookalikes=not args.keep_sky_lookalikes,
-                     learn_sun_direction=not args.fixed_sun_direction)
+                     learn_sun_direction=args.learn_sun_direction)
 
 
 def run(args):

@@ -77,7 +77,7 @@ class FitConfig:
     sun_candidates: int = 48
     sun_gaussians: int = 20000
     per_frame_visibility: bool = False
-    learn_sun_direction: bool = True   # stage 2 refines the selected sun direction
+    learn_sun_direction: bool = False  # stage 2 refines the selected sun direction (opt-in)
     prune_sky_lookalikes: bool = True  # drop sky-coloured Gaussians with only sky behind them
     sun_visibility: str = "learn"  # learn | trace: the paper's per-Gaussian v_sun, or traced only
 
