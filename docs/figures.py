@@ -1,12 +1,12 @@
 """Regenerate the README/doc pictures of fitted scenes from real runs.
 
-    python docs/figures.py albedo  out/street_fit2 2 out/street_data/gt/maps/000002_albedo.exr
+    python docs/figures.py albedo  out/street_fit3 2 out/street_data/gt/maps/000002_albedo.exr [NAME.png]
     python docs/figures.py kitti   out/kitti_fit/fit_full 8 out/street_fit2/fit_full/scene.xml:object_0
 
-``albedo DIR FRAME [GT_ALBEDO.exr]``: observed image, ground-truth albedo and
-the albedo maps of ``DIR/fit_full``, ``DIR/fit_no_consistency`` and
+``albedo DIR FRAME [GT_ALBEDO.exr [NAME.png]]``: observed image, ground-truth
+albedo and sun visibility (next to GT_ALBEDO.exr) and the albedo maps of ``DIR/fit_full``, ``DIR/fit_no_consistency`` and
 ``DIR/fit_rgb_only`` (written by ``tests/bench/bench_ablation.py``) for one
-training frame -> ``docs/img/albedo_ablation.png``.
+training frame -> ``docs/img/albedo_ablation.png`` (or NAME.png).
 
 ``kitti FIT FRAME OBJECT``: runs ``relight``, ``night``, ``insert`` (OBJECT is
 ``scene.xml:node``) and ``lidar`` on the fitted scene for one frame and
@@ -61,18 +61,24 @@ def read_png(path):
     return cv2.imread(path)[..., ::-1] / 255.0
 
 
-def albedo(root, frame, gt=None):
+def albedo(root, frame, gt=None, out_name="albedo_ablation.png"):
     rows = [tile(read_png(os.path.join(root, "observations", "image_%04d.png" % frame)),
                  "observed image (training frame %d)" % frame)]
     if gt:
         rows.append(tile(srgb(read_exr(gt)[..., :3]), "ground-truth albedo"))
-    for name, label in (("fit_full", "fitted albedo: full method"),
-                        ("fit_no_consistency", "fitted albedo: without the consistency losses"),
-                        ("fit_rgb_only", "fitted albedo: RGB only")):
-        p = os.path.join(root, name, "maps", "%04d_albedo.exr" % frame)
+        vis = gt.replace("_albedo.exr", "_sun_visibility.exr")
+        if os.path.isfile(vis):
+            v = read_exr(vis)
+            v = next(iter(v.values())) if isinstance(v, dict) else v
+            v = v[..., 0] if v.ndim == 3 else v
+            rows.append(tile(np.clip(v, 0, 1), "ground-truth sun visibility (black: shadow)"))
+    for variant, label in (("fit_full", "fitted albedo: full method"),
+                           ("fit_no_consistency", "fitted albedo: without the consistency losses"),
+                           ("fit_rgb_only", "fitted albedo: RGB only")):
+        p = os.path.join(root, variant, "maps", "%04d_albedo.exr" % frame)
         if os.path.isfile(p):
             rows.append(tile(srgb(read_exr(p)[..., :3]), label))
-    out = os.path.join(IMG, "albedo_ablation.png")
+    out = os.path.join(IMG, out_name)
     cv2.imwrite(out, np.vstack(rows))
     print(out)
 
@@ -131,7 +137,8 @@ def _pictures(fit, frame, work):
 if __name__ == "__main__":
     what = sys.argv[1] if len(sys.argv) > 1 else ""
     if what == "albedo":
-        albedo(sys.argv[2], int(sys.argv[3]), sys.argv[4] if len(sys.argv) > 4 else None)
+        albedo(sys.argv[2], int(sys.argv[3]), sys.argv[4] if len(sys.argv) > 4 else None,
+               sys.argv[5] if len(sys.argv) > 5 else "albedo_ablation.png")
     elif what == "kitti":
         kitti(sys.argv[2], int(sys.argv[3]), sys.argv[4], rerun="--pictures-only" not in sys.argv)
     else:
