@@ -247,3 +247,14 @@ def test_resume_in_stage_2_keeps_learning_sun_visibility(scene_path, tmp_path):
     assert 'name="sun_visibility" value="attribute"' in (tmp_path / "scene.xml").read_text()
     v = read_ply(str(tmp_path / "background.ply")).sun_visibility
     assert np.all((v >= 0) & (v <= 1)) and 0.02 < np.mean(v < 0.5) < 0.98
+
+
+def test_cli_flags_reach_the_config():
+    from mi_invrgbl.cli import build_parser
+    from mi_invrgbl.commands.fit import config_from_args
+    parse = lambda *a: config_from_args(build_parser().parse_args(["fit", "s.xml", *a]))  # noqa: E731
+    default = parse()
+    assert default.prune_sky_lookalikes and not default.learn_sun_direction
+    assert default.sun_visibility == "learn"
+    cfg = parse("--keep-sky-lookalikes", "--learn-sun-direction", "--sun-visibility", "trace")
+    assert not cfg.prune_sky_lookalikes and cfg.learn_sun_direction and cfg.sun_visibility == "trace"
