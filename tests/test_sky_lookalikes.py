@@ -92,3 +92,24 @@ def test_a_wall_too_dense_to_see_through_gives_no_evidence():
     accumulate(acc, {"opaque": hitlib.shape_id(scene.shapes()[0])}, stats)
     assert (acc["opaque"][:, 0] > 0.05).sum() > 5
     assert not lookalike_masks(acc)["opaque"].any()
+
+
+def test_sky_coloured_wall_in_front_of_a_mesh_is_kept():
+    sh = " ".join("%.6f" % (v / 0.28209479) for v in SKY)
+    scene = mi.load_dict({
+        "type": "scene", "sky": {"type": "shsun", "order": 0, "sh": sh},
+        "front": wall("front", 5.0, -1.0, 1.0, SKY, 0.3),
+        "mesh": {"type": "rectangle", "bsdf": {"type": "diffuse"},
+                 "to_world": mi.ScalarTransform4f().translate([8.0, 0.0, 1.0])
+                 @ mi.ScalarTransform4f().rotate([0, 1, 0], -90) @ mi.ScalarTransform4f().scale(3.0)}})
+    ys, zs = np.meshgrid(np.linspace(-0.8, 0.8, 32), np.linspace(0.3, 1.7, 8))
+    rays = mi.Ray3f(mi.Point3f(mi.Float(np.zeros(ys.size)), mi.Float(ys.ravel()), mi.Float(zs.ravel())),
+                    mi.Vector3f(dr.ones(mi.Float, ys.size), 0.0, 0.0))
+    from mi_invrgbl.plugins import hits as hitlib
+    front = [s for s in scene.shapes() if s.id() == "front"][0]
+    with dr.suspend_grad():
+        stats = frame_statistics(scene, rays)
+    acc = {"front": np.zeros((dr.width(mi.traverse(scene)["front.opacities"]), 3))}
+    accumulate(acc, {"front": hitlib.shape_id(front)}, stats)
+    assert (acc["front"][:, 0] > 0.05).sum() > 5
+    assert not lookalike_masks(acc)["front"].any()

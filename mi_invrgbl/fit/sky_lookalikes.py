@@ -86,8 +86,10 @@ def frame_statistics(scene, rays, max_hits=64, min_transmittance=1e-4, tolerance
     np.add.at(revealed, ray, w_kept[:, None] * c)
     behind = np.linalg.norm(revealed - sky_rays, axis=1) / np.maximum(np.linalg.norm(sky_rays, axis=1), 1e-3)
     # A ray cut off at max_hits or min_transmittance never showed what is
-    # behind its last hits: no evidence that removal is harmless.
-    cut = (per_ray(hl.count) >= max_hits) | (per_ray(t_end) < min_transmittance)
+    # behind its last hits, and one ending on a mesh shows the mesh: no
+    # evidence that removal is harmless.
+    cut = (per_ray(hl.count) >= max_hits) | (per_ray(t_end) < min_transmittance) \
+        | np.broadcast_to(np.array(hl.surface_valid, bool), (n_rays,))
     behind[cut] = np.inf
     return per_hit(g.node_ids, np.uint32), per_hit(g.prims, np.int64), w, colour_off, behind[ray]
 
