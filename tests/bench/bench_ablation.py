@@ -105,6 +105,8 @@ def main():
     ap.add_argument("--stage2", type=int, default=150)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--only", default="", help="comma-separated variant names")
+    ap.add_argument("--fit-args", default="",
+                    help="extra 'fit' arguments for every variant, e.g. '--sun on'")
     ap.add_argument("--report", action="store_true",
                     help="only print the table from the variants' existing outputs")
     args = ap.parse_args()
@@ -119,8 +121,8 @@ def main():
             except OSError:
                 continue
         else:
-            out, fit_s, metrics = run_variant(args.scene, name, extra, args.stage1, args.stage2,
-                                              args.seed)
+            out, fit_s, metrics = run_variant(args.scene, name, extra + args.fit_args.split(),
+                                              args.stage1, args.stage2, args.seed)
         if "mean" not in metrics:     # fitted but not evaluated yet
             continue
         mean = metrics["mean"]
