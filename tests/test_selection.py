@@ -56,3 +56,30 @@ def test_patch_regression_recovers_ratio_and_ignores_albedo():
     assert gain > 0.9
     gain0, rho0 = PatchRegression(lum, patches).fit(rng.random(n))  # unrelated shading
     assert gain0 < 0.05
+
+
+def test_sh_order_ignores_pixels_that_are_not_sky():
+    # A uniform sky seen in a band above the horizon, with 12 % of its
+    # "sky" pixels showing a bright roof on one side: a plain least-squares
+    # fit buys a tilted order-1 sky for them; the trimmed fit keeps order 0
+    # and the true radiance.
+    from mi_invrgbl.fit.selection import fit_sh_orders, sh_basis_numpy
+    rng = np.random.default_rng(0)
+    n = 4000
+    phi = rng.uniform(-0.6, 0.6, n)
+    elev = rng.uniform(0.02, 0.35, n)
+    d = np.stack([np.cos(elev) * np.cos(phi), np.cos(elev) * np.sin(phi), np.sin(elev)], 1)
+    sky = np.array([0.32, 0.38, 0.5])
+    rgb = np.tile(sky, (n, 1)) + rng.normal(0, 0.004, (n, 3))
+    roof = (phi > 0.3) & (rng.uniform(size=n) < 0.5)
+    rgb[roof] = [0.9, 0.75, 0.6]
+    order, errors, coeffs = fit_sh_orders(d, rgb, max_order=2)
+    print(roof.mean(), order, errors)
+    assert 0.08 < roof.mean() < 0.2
+    assert order == 0
+    fitted = sh_basis_numpy(np.array([[0.0, 0.0, 1.0]]), 0) @ coeffs[0]
+    assert np.allclose(fitted.ravel(), sky, atol=0.01)
+    # Plain least squares on the same pixels is pulled towards the roof.
+    B = sh_basis_numpy(d, 0)
+    plain, *_ = np.linalg.lstsq(B, rgb, rcond=None)
+    assert np.abs((B[:1] @ plain).ravel() - sky).max() > 0.04

@@ -15,8 +15,10 @@
   traced candidates) is in the model, and clearly more than a typical
   candidate does.
 * **SH order.** The sky seen directly (pixels with no Gaussian in front) is
-  fitted by least squares at orders 0..3 on 80 % of those pixels; the lowest
-  order within 2 % of the best error on the other 20 % wins.
+  fitted at orders 0..3 on 80 % of those pixels by trimmed least squares
+  (the 20 % worst-explained pixels, which show roofs or crowns the fit has no
+  Gaussians for, are left out); the lowest order within 2 % of the best
+  trimmed error on the other 20 % wins.
 """
 
 from __future__ import annotations
@@ -186,10 +188,42 @@ def select_sun(scene, centers, normals, luminance, weights=None, candidates=48,
             "gaussians": int(len(luminance))}
 
 
-def fit_sh_orders(directions, radiance, max_order=3, seed=0, tolerance=0.02):
-    """Least-squares SH fits of directly seen sky radiance at each order.
+#: Share of "sky" pixels an SH fit may treat as outliers: pixels that no
+#: Gaussian covers but that show something else (a roof above the walls the
+#: import extended, a tree crown above the LiDAR's top beam).
+SKY_OUTLIERS = 0.2
 
-    Returns ``(chosen_order, {order: held-out RMSE}, {order: coefficients (n, 3)})``.
+
+def _trimmed_rmse(residual, keep=1.0 - SKY_OUTLIERS):
+    """RMSE over the ``keep`` share of pixels with the smallest residual norms."""
+    r2 = np.sum(residual ** 2, axis=1)
+    if r2.size == 0:
+        return 0.0
+    k = max(1, int(np.ceil(keep * r2.size)))
+    return float(np.sqrt(np.mean(np.partition(r2, k - 1)[:k]) / residual.shape[1]))
+
+
+def fit_sh_trimmed(B, radiance, rounds=3, keep=1.0 - SKY_OUTLIERS):
+    """Least squares of ``radiance ~ B c`` refitted on the ``keep`` share of
+    pixels it explains best (a trimmed fit: contamination cannot bend it)."""
+    use = np.arange(B.shape[0])
+    c = np.zeros((B.shape[1], radiance.shape[1]))
+    for _ in range(rounds):
+        c, *_ = np.linalg.lstsq(B[use], radiance[use], rcond=None)
+        r2 = np.sum((B @ c - radiance) ** 2, axis=1)
+        k = max(B.shape[1], int(np.ceil(keep * r2.size)))
+        use = np.argsort(r2)[:k]
+    return c
+
+
+def fit_sh_orders(directions, radiance, max_order=3, seed=0, tolerance=0.02):
+    """Trimmed least-squares SH fits of directly seen sky radiance at each order.
+
+    "Sky" pixels are those no Gaussian covers; some show things the fit has no
+    Gaussians for. Fitting and scoring both ignore the 20 % worst-explained
+    pixels, so such outliers neither bend the sky nor buy a higher order.
+
+    Returns ``(chosen_order, {order: held-out trimmed RMSE}, {order: coefficients (n, 3)})``.
     """
     n = directions.shape[0]
     rng = np.random.default_rng(seed)
@@ -199,10 +233,10 @@ def fit_sh_orders(directions, radiance, max_order=3, seed=0, tolerance=0.02):
     errors, coeffs = {}, {}
     for order in range(max_order + 1):
         B = sh_basis_numpy(directions, order)
-        c, *_ = np.linalg.lstsq(B[tr], radiance[tr], rcond=None)
+        c = fit_sh_trimmed(B[tr], radiance[tr])
         pred = B[te] @ c if te.size else B[tr] @ c
         ref = radiance[te] if te.size else radiance[tr]
-        errors[order] = float(np.sqrt(np.mean((pred - ref) ** 2)))
+        errors[order] = _trimmed_rmse(pred - ref)
         coeffs[order] = c
     # A camera sees a narrow band of sky directions; higher orders fitted to
     # it can explode towards the zenith, which would flood every Gaussian
