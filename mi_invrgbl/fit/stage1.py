@@ -144,16 +144,26 @@ class Stage1:
                 continue
             cloud = self.model.cloud(name, stage=1)
             cloud.albedo = np.clip(node.numpy("colour"), 0, 1)
-            kept = _subset(cloud, ~drop)
-            self.model.set_cloud(name, kept, local=True)
-            self.model.nodes[name].values["colour"] = mi.Float(kept.albedo.astype(np.float32).ravel())
+            self._replace_cloud(name, _subset(cloud, ~drop))
             removed[name] = int(drop.sum())
         if removed:
-            sky = self.opt["sky.sh"] if "sky.sh" in self.opt else None
-            self.build_optimizer()
-            if sky is not None:
-                self.opt["sky.sh"] = sky
+            self._rebuild_optimizer()
         return removed
+
+    def _replace_cloud(self, name, cloud):
+        """Swap a node's Gaussians (stage-1 colour carried in ``cloud.albedo``).
+
+        The stage-2 fields' old per-Gaussian rows travel with the cloud: they
+        are not optimised yet."""
+        self.model.set_cloud(name, cloud, local=True)
+        self.model.nodes[name].values["colour"] = mi.Float(cloud.albedo.astype(np.float32).ravel())
+
+    def _rebuild_optimizer(self):
+        """New Adam state for the changed Gaussian counts; the sky's is kept."""
+        sky = self.opt["sky.sh"] if "sky.sh" in self.opt else None
+        self.build_optimizer()
+        if sky is not None:
+            self.opt["sky.sh"] = sky
 
     # ------------------------------------------------------------ densify
     def densify(self):
@@ -195,19 +205,12 @@ class Stage1:
                     s.centers = (s.centers + sign * 0.5 * offset).astype(np.float32)
                     s.scales = (s.scales / 1.6).astype(np.float32)
                     parts.append(s)
-            new = _concat(parts, cloud.source)
-            # Keep the old per-Gaussian rows of the stage-2 fields: they are
-            # not optimised yet, so the merged cloud carries them along.
-            self.model.set_cloud(name, new, local=True)
+            self._replace_cloud(name, _concat(parts, cloud.source))
             node = self.model.nodes[name]
-            node.values["colour"] = mi.Float(new.albedo.astype(np.float32).ravel())
             report[name] = (int((~keep).sum()), int(clone.sum()), int(split.sum()), node.count)
             total_now = total_now - len(cloud) + node.count
         self.grad_accum = {}
-        sky = self.opt["sky.sh"] if "sky.sh" in self.opt else None
-        self.build_optimizer()
-        if sky is not None:
-            self.opt["sky.sh"] = sky
+        self._rebuild_optimizer()
         return report
 
 
