@@ -17,7 +17,7 @@ contributes to with its blend weight. Removing such Gaussians leaves the
 images as they are. The second test keeps a real sky-blue wall in front of
 a darker building: removing it would reveal the building. Rays are traced
 deep (transmittance down to 1e-4) so that what such a wall hides is found;
-rays cut off before that give no evidence.
+a Gaussian seen by any ray cut off before that, or ending on a mesh, is kept.
 """
 
 from __future__ import annotations
@@ -103,7 +103,9 @@ def accumulate(acc, shape_ids, stats):
         a = acc[name]
         np.add.at(a[:, 0], prims[m], w[m])
         np.add.at(a[:, 1], prims[m], w[m] * c_off[m])
-        np.add.at(a[:, 2], prims[m], w[m] * b_off[m])
+        # One ray without evidence (infinite mismatch) keeps the Gaussian;
+        # a zero-weight hit adds nothing (not 0 x inf).
+        np.add.at(a[:, 2], prims[m], np.where(w[m] > 0, w[m] * b_off[m], 0.0))
 
 
 def lookalike_masks(acc, tolerance=0.15, min_weight=0.05):

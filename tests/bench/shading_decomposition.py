@@ -16,27 +16,18 @@ import os
 import sys
 
 import numpy as np
-import OpenEXR
 import cv2
 import mitsuba as mi
 
-mi.set_variant("llvm_ad_rgb")
+from street_truth import LUM, ground_truth, observed_linear, source_number, truth_map
 import drjit as dr  # noqa: E402
 import mi_invrgbl  # noqa: E402,F401
-
-LUM = np.array([0.2126, 0.7152, 0.0722])
-
-
-def exr(path):
-    ch = OpenEXR.File(path).channels()
-    return ch["RGB"].pixels if "RGB" in ch else next(iter(ch.values())).pixels
 
 
 def main():
     root, fit = sys.argv[1], sys.argv[2]
     frames = [int(a) for a in sys.argv[3:]] or [1, 8, 13, 18]
-    meta = json.load(open(os.path.join(root, "frames.json")))
-    gt = meta["ground_truth"]["dir"] if isinstance(meta["ground_truth"], dict) else meta["ground_truth"]
+    meta, gt = ground_truth(root)
     ids = {m["name"]: m["mesh_id"] for m in json.load(open(os.path.join(gt, "materials.json")))["meshes"]}
     scene = mi.load_file(os.path.join(root, fit, "scene.xml"), spp=16)
     params = mi.traverse(scene)
@@ -48,7 +39,7 @@ def main():
         sensor = [s for s in scene.sensors() if s.id() == "camera_%04d" % i]
         if not rec or not sensor:
             continue
-        n = int(rec[0].get("source_index", rec[0].get("source_frame", i)))
+        n = source_number(rec[0])
         renders = {}
         for name, no_sun, no_albedo in (("fitted", False, False), ("no sun", True, False),
                                         ("specular", False, True), ("sky specular", True, True)):
@@ -59,11 +50,9 @@ def main():
             renders[name] = np.array(mi.render(scene, sensor=sensor[0], spp=16))[..., :3] @ LUM
         H, W = renders["fitted"].shape
         size = lambda x: cv2.resize(x.astype(np.float32), (W, H), interpolation=cv2.INTER_NEAREST)  # noqa: E731
-        mesh = size(exr(os.path.join(gt, "maps", "%06d_mesh_id.exr" % n)).squeeze())
-        vis = exr(os.path.join(gt, "maps", "%06d_sun_visibility.exr" % n))
-        vis = size(vis[..., 0] if vis.ndim == 3 else vis)
-        img = cv2.imread(os.path.join(root, "observations", "image_%04d.png" % i))[..., ::-1] / 255.0
-        img = np.where(img <= 0.04045, img / 12.92, ((img + 0.055) / 1.055) ** 2.4) @ LUM
+        mesh = size(truth_map(gt, "mesh_id", n))
+        vis = size(truth_map(gt, "sun_visibility", n))
+        img = observed_linear(root, i) @ LUM
         img = size(img) if img.shape != (H, W) else img
         for surface in ("road", "sidewalk"):
             for light, m in (("shadow", vis < 0.5), ("sunlit", vis >= 0.5)):

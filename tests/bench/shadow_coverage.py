@@ -11,26 +11,19 @@ Prints the share of truly shadowed pixels modelled as sunlit (>= 0.5) and of
 truly sunlit pixels modelled as shadowed.
 """
 
-import json
 import os
 import sys
 
 import numpy as np
-import OpenEXR
 import cv2
 import mitsuba as mi
 
-mi.set_variant("llvm_ad_rgb")
+from street_truth import ground_truth, source_number, truth_map
 import drjit as dr  # noqa: E402
 import mi_invrgbl  # noqa: E402,F401
 from mi_invrgbl.plugins import hits as hitlib  # noqa: E402
 from mi_invrgbl.plugins.lighting import GaussianLighting, LightingCache  # noqa: E402
 
-
-def exr(path):
-    ch = OpenEXR.File(path).channels()
-    a = ch["RGB"].pixels if "RGB" in ch else next(iter(ch.values())).pixels
-    return a
 
 
 def blended_visibility(scene, sensor, nodes, per_gaussian, table):
@@ -63,11 +56,10 @@ def coverage(root, variant, meta, gt):
         if f.get("held_out"):
             continue
         i = f["index"]
-        n = int(f.get("source_index", f.get("source_frame", i)))
+        n = source_number(f)
         vmap, alpha = blended_visibility(scene, sensors["camera_%04d" % i], nodes, traced, lighting.table)
-        truth = exr(os.path.join(gt, "maps", "%06d_sun_visibility.exr" % n))
-        truth = truth[..., 0] if truth.ndim == 3 else truth
-        normal = exr(os.path.join(gt, "maps", "%06d_normal.exr" % n))[..., :3]
+        truth = truth_map(gt, "sun_visibility", n)
+        normal = truth_map(gt, "normal", n)[..., :3]
         if truth.shape != vmap.shape:
             vmap = cv2.resize(vmap, truth.shape[::-1], interpolation=cv2.INTER_NEAREST)
             alpha = cv2.resize(alpha, truth.shape[::-1])
@@ -81,13 +73,7 @@ def coverage(root, variant, meta, gt):
 def main():
     root = sys.argv[1]
     variants = sys.argv[2:] or sorted(d for d in os.listdir(root) if d.startswith("fit"))
-    meta = json.load(open(os.path.join(root, "frames.json")))
-    gt = meta.get("ground_truth")
-    gt = gt.get("dir") if isinstance(gt, dict) else gt
-    if not gt:
-        sys.exit("%s: frames.json names no ground truth" % root)
-    if not os.path.isabs(gt):
-        gt = os.path.normpath(os.path.join(root, gt))
+    meta, gt = ground_truth(root)
     print("| fit | sun visibility | true shadow modelled sunlit | true sun modelled shadowed |")
     print("|---|---|---|---|")
     for v in variants:

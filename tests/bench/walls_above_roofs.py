@@ -18,9 +18,7 @@ import sys
 import numpy as np
 import trimesh
 
-import mitsuba as mi
-
-mi.set_variant("llvm_ad_rgb")
+import street_truth  # noqa: F401  (sets the Mitsuba variant)
 from mi_invrgbl.commands.eval import source_number  # noqa: E402
 from mi_invrgbl.plugins.gaussian_ply import read_ply  # noqa: E402
 from mi_invrgbl.scene_graph import Frames  # noqa: E402

@@ -1,0 +1,58 @@
+"""What the synthetic-street benches share: the ground truth behind a scene
+folder, its per-frame maps, the observed images and the fitted maps.
+
+    meta, gt = ground_truth(root)          # frames.json and the truth folder
+    truth_map(gt, "sun_visibility", n)     # (H, W) or (H, W, 3) float32
+"""
+
+import json
+import os
+import sys
+
+import numpy as np
+import cv2
+import mitsuba as mi
+
+mi.set_variant("llvm_ad_rgb")
+from mi_invrgbl.metrics import srgb_to_linear  # noqa: E402
+
+LUM = np.array([0.2126, 0.7152, 0.0722])
+
+
+def read_exr(path):
+    """An EXR's pixels: (H, W) for one channel, (H, W, C) for more."""
+    return np.array(mi.Bitmap(path), np.float32)
+
+
+def ground_truth(root):
+    """``(frames.json as a dict, truth folder)``; exits with a message without one."""
+    meta = json.load(open(os.path.join(root, "frames.json")))
+    gt = meta.get("ground_truth")
+    gt = gt.get("dir") if isinstance(gt, dict) else gt
+    if not gt:
+        sys.exit("%s: frames.json names no ground truth" % root)
+    if not os.path.isabs(gt):
+        gt = os.path.normpath(os.path.join(root, gt))
+    return meta, gt
+
+
+def source_number(frame):
+    """The generator's frame number of a frames.json record."""
+    return int(frame.get("source_index", frame.get("source_frame", frame["index"])))
+
+
+def truth_map(gt, kind, number):
+    """Ground-truth map ``kind`` (albedo, normal, sun_visibility, mesh_id, ...) of a frame."""
+    return read_exr(os.path.join(gt, "maps", "%06d_%s.exr" % (number, kind)))
+
+
+def fitted_map(root, variant, index, kind):
+    """Map ``kind`` that ``fit`` wrote for training frame ``index``, or None."""
+    path = os.path.join(root, variant, "maps", "%04d_%s.exr" % (index, kind))
+    return read_exr(path) if os.path.isfile(path) else None
+
+
+def observed_linear(root, index):
+    """The observed image of frame ``index`` as linear RGB."""
+    img = cv2.imread(os.path.join(root, "observations", "image_%04d.png" % index))[..., ::-1] / 255.0
+    return srgb_to_linear(img)
