@@ -368,7 +368,7 @@ def _quat_mul(a, b):
 
 
 def _rotation_to_quat_xyzw(R) -> np.ndarray:
-    from .plugins.gaussian_ply import matrix_to_quaternion
+    from .physics.gaussian_ply import matrix_to_quaternion
     q = matrix_to_quaternion(np.asarray(R, np.float64)[None])[0]  # w x y z
     return np.array([q[1], q[2], q[3], q[0]])
 

@@ -20,7 +20,7 @@ import mitsuba as mi
 
 if not mi.variant():  # importing the package needs a variant
     mi.set_variant("llvm_ad_rgb")
-from mi_invrgbl.plugins.gaussian_ply import GaussianCloud, write_ply
+from mi_invrgbl.physics.gaussian_ply import GaussianCloud, write_ply
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 

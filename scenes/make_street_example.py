@@ -6,12 +6,10 @@ sidewalks, and a facade with windows, as flat Gaussians with materials.
 """
 
 import os
-import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "plugins"))
-from gaussian_ply import GaussianCloud, write_ply  # noqa: E402
+from mi_invrgbl.physics.gaussian_ply import GaussianCloud, write_ply
 
 OUT = os.path.join(os.path.dirname(__file__), "street_assets", "street_gaussians.ply")
 

@@ -78,7 +78,7 @@ def build(out_dir, n_frames=5, width=96, height=32, columns=256, sun=True, truth
     observations show (e.g. a shadow) that the scene to fit lacks.
     """
     from mi_invrgbl.io.images import write_exr
-    from mi_invrgbl.plugins.gaussian_ply import read_ply, write_ply
+    from mi_invrgbl.physics.gaussian_ply import read_ply, write_ply
     import cv2
     os.makedirs(os.path.join(out_dir, "observations"), exist_ok=True)
     truth = read_ply(PLY)

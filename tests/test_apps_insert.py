@@ -98,7 +98,7 @@ def files(tmp_path_factory):
 
 def write_fitted_car(folder):
     """A 'fitted' scene with one dynamic node: a box of surface Gaussians, 2 x 1.2 x 1 m."""
-    from mi_invrgbl.plugins.gaussian_ply import GaussianCloud, matrix_to_quaternion, write_ply
+    from mi_invrgbl.physics.gaussian_ply import GaussianCloud, matrix_to_quaternion, write_ply
     folder.mkdir()
     size, step = np.array([2.0, 1.2, 1.0]), 0.1
     centers, rots = [], []

@@ -131,7 +131,7 @@ def test_invrgbl_scene_traces_the_new_suns_shadows(tmp_path):
 def test_lighting_read_back_from_scenes(street):
     from mi_invrgbl.apps.lighting_edit import lighting_of_doc, read_lighting
     from mi_invrgbl.apps.xml_edit import SceneDoc
-    from mi_invrgbl.plugins.sh import Y0
+    from mi_invrgbl.physics.sh import Y0
     stock = lighting_of_doc(SceneDoc.load(str(street / "gt" / "scene_time_b.xml")))
     assert stock.sh.shape == (1, 3)
     assert stock.sh[0] * Y0 == pytest.approx([0.22, 0.24, 0.32], rel=1e-5)

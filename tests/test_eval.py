@@ -17,7 +17,7 @@ import pytest
 import drjit as dr
 import mitsuba as mi
 
-from mi_invrgbl.plugins.gaussian_ply import GaussianCloud, write_ply
+from mi_invrgbl.physics.gaussian_ply import GaussianCloud, write_ply
 from mi_invrgbl.io.images import write_exr, write_png
 from mi_invrgbl.scene_graph import Frames, CAMERA_FLIP
 

@@ -196,7 +196,7 @@ def test_fit_without_lidar_scans_runs_on_images_alone(scene_path, tmp_path):
 
 @pytest.mark.parametrize("mode", ["learn", "trace"])
 def test_sun_visibility_learned_or_traced(scene_path, tmp_path, mode):
-    from mi_invrgbl.plugins.gaussian_ply import read_ply
+    from mi_invrgbl.physics.gaussian_ply import read_ply
     out = tmp_path / mode
     metrics = run_fit(scene_path, small_config(out, sun="on", sun_visibility=mode,
                                                render_samples="8"), log=lambda *a: None)
@@ -237,7 +237,7 @@ def test_stage_2_refines_the_sun_direction(scene_path, tmp_path, learn):
 def test_resume_in_stage_2_keeps_learning_sun_visibility(scene_path, tmp_path):
     # The learned v_sun is an optimiser variable: an interrupted stage 2 must
     # restore it (and its moments) and go on writing it out.
-    from mi_invrgbl.plugins.gaussian_ply import read_ply
+    from mi_invrgbl.physics.gaussian_ply import read_ply
     run_fit(scene_path, small_config(tmp_path, sun="on", stage2_iterations=16, render_samples="8"),
             log=lambda *a: None)
     lines = []

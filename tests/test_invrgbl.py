@@ -409,7 +409,7 @@ def test_nan_parameters_are_refused_with_a_clear_message(tmp_path):
     with pytest.raises(Exception, match=r"centers.*NaN.*index 3"):
         mi.load_dict(g)
 
-    from mi_invrgbl.plugins.gaussian_ply import GaussianCloud, write_ply
+    from mi_invrgbl.physics.gaussian_ply import GaussianCloud, write_ply
     n = 4
     cloud = GaussianCloud(centers=np.zeros((n, 3), np.float32), scales=np.full((n, 3), 0.1, np.float32),
                           quaternions=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),

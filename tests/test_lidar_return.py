@@ -1,7 +1,7 @@
 """The ``lidar_return`` integrator against the paper's LiDAR equation.
 
 The reference is written out here in numpy (float64), independently of
-``plugins/brdf.py``:
+``mi_invrgbl/physics/brdf.py``:
 
     I = g (rho + F0 tau^2 min(1, 2 c^2) / (4 c^2 (c^2 (tau^2 - 1) + 1)^2)) P_e c^a / (pi d^b)
 

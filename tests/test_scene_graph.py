@@ -7,7 +7,7 @@ import pytest
 import mitsuba as mi
 
 from mi_invrgbl.errors import UserError
-from mi_invrgbl.plugins.gaussian_ply import GaussianCloud, write_ply, quaternion_to_matrix
+from mi_invrgbl.physics.gaussian_ply import GaussianCloud, write_ply, quaternion_to_matrix
 from mi_invrgbl.scene_graph import Frames, set_frame, CAMERA_FLIP, FORMAT
 
 

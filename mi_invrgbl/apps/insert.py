@@ -86,7 +86,7 @@ def _translate(t) -> np.ndarray:
 
 
 def _gaussian_bounds(path: str):
-    from ..plugins.gaussian_ply import GaussianFileError, read_ply
+    from ..physics.gaussian_ply import GaussianFileError, read_ply
     try:
         cloud = read_ply(path)
     except (GaussianFileError, OSError, ValueError) as exc:

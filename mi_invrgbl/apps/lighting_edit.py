@@ -69,7 +69,7 @@ class Lighting:
 
     @staticmethod
     def constant_sky(radiance, **kw) -> "Lighting":
-        from ..plugins.sh import Y0
+        from ..physics.sh import Y0
         return Lighting(sh=np.asarray(radiance, np.float64).reshape(1, 3) / Y0, **kw)
 
     @property
@@ -91,12 +91,12 @@ class Lighting:
 
     def sky_radiance_mean(self) -> np.ndarray:
         """Mean sky radiance over the sphere (RGB): ``c0 Y0``."""
-        from ..plugins.sh import Y0
+        from ..physics.sh import Y0
         return np.asarray(self.sh, np.float64)[0] * Y0
 
     def emitter_element(self, ident: str = "sky") -> ET.Element:
         """This lighting as an ``<emitter type="shsun">`` element."""
-        from ..plugins.sh import order_from_count
+        from ..physics.sh import order_from_count
         sh = np.asarray(self.sh, np.float64).reshape(-1, 3)
         text = ",  ".join(" ".join("%.7g" % v for v in row) for row in sh)
         return xml_edit.element("emitter", "shsun", ident, [
@@ -131,7 +131,7 @@ def lighting_of_scene(scene, source: str = "") -> Lighting | None:
     """The sky + sun of a loaded scene (None if it has neither); see module docstring."""
     import drjit as dr
     import mitsuba as mi
-    from ..plugins.sh import num_coeffs, project_sh
+    from ..physics.sh import num_coeffs, project_sh
     sh = None
     suns = []   # (direction, irradiance, radius)
 

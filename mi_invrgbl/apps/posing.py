@@ -148,7 +148,7 @@ class NodePoser:
         p = self.params
         R0, s0, t0 = _split(np.eye(4) if loaded_pose is None else loaded_pose)
         if shape_id + ".data" in p:
-            from ..plugins.gaussian_ply import quaternion_to_matrix
+            from ..physics.gaussian_ply import quaternion_to_matrix
             self.kind = "gaussians"
             data = np.array(p[shape_id + ".data"], np.float64).reshape(-1, 10)
             self.centers = ((data[:, :3] - t0) @ R0) / s0        # R0^T (c - t0) / s0
@@ -169,7 +169,7 @@ class NodePoser:
 
     def set_pose(self, pose, update: bool = True) -> None:
         import mitsuba as mi
-        from ..plugins.gaussian_ply import matrix_to_quaternion
+        from ..physics.gaussian_ply import matrix_to_quaternion
         R, s, t = _split(pose)
         p = self.params
         if self.kind == "gaussians":

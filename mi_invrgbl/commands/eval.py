@@ -302,7 +302,7 @@ class SkySwap:
                       ("sh", "sun_direction", "sun_irradiance")}
 
     def set(self, sky_radiance, sun_direction, sun_irradiance):
-        from ..plugins.sh import Y0
+        from ..physics.sh import Y0
         n = dr.width(self.params["sh"])
         sh = np.zeros(n, np.float32)
         sh[:3] = np.asarray(sky_radiance, np.float64) / Y0

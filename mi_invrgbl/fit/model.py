@@ -36,7 +36,7 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
-from ..plugins.gaussian_ply import GaussianCloud
+from ..physics.gaussian_ply import GaussianCloud
 from ..plugins.gaussians import cloud_from_shape, apply_transform
 from ..scene_graph import _rotation_to_quat_xyzw as rotation_to_quat_xyzw
 

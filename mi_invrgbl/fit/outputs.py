@@ -19,7 +19,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..io.images import write_exr
-from ..plugins.gaussian_ply import write_ply
+from ..physics.gaussian_ply import write_ply
 from .progress import peak_rss_mb, plot_error_vs_time
 
 

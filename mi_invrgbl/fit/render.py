@@ -18,8 +18,8 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
-from ..plugins import brdf, hits as hitlib
-from ..plugins.lighting import environment_radiance
+from ..physics import brdf, hits as hitlib
+from ..physics.lighting import environment_radiance
 
 
 # ---------------------------------------------------------------- stage 1
@@ -90,7 +90,7 @@ def freeze(scene, rays, max_hits=32, min_transmittance=1e-2, min_weight=1e-4, no
 class VirtualNode:
     """A Gaussian node as the plugins' gathers see it, built from fit variables.
 
-    Same fields as :class:`~mi_invrgbl.plugins.hits.GaussianNode`; ``id`` is the
+    Same fields as :class:`~mi_invrgbl.physics.hits.GaussianNode`; ``id`` is the
     scene shape's registry id so traced hit lists address it.
     """
 
@@ -104,7 +104,7 @@ class VirtualNode:
 
 
 def frozen_gaussian_hits(nodes, rays, fh: FrozenHits):
-    """A :class:`~mi_invrgbl.plugins.hits.GaussianHits` over cached hits; the
+    """A :class:`~mi_invrgbl.physics.hits.GaussianHits` over cached hits; the
     normal (and what depends on it) stays differentiable."""
     active = fh.node_ids != 0
     d = dr.gather(mi.Vector3f, rays.d, fh.ray)

@@ -28,9 +28,9 @@ import drjit as dr
 import mitsuba as mi
 
 from ..errors import UserError
-from ..plugins.lighting import LightingCache
+from ..physics.lighting import LightingCache
 from ..metrics import psnr
-from ..plugins import hits as hitlib
+from ..physics import hits as hitlib
 from ..scene_graph import Frames
 from . import losses
 from .losses import LossWeights
@@ -325,7 +325,7 @@ def _loop(ctx, stage_name, stage, start, total, evaluate, opt_getter):
 # ------------------------------------------------------------------ between stages
 def set_sh_order(ctx, order):
     """Fit the sky at ``order``: higher coefficients stay zero (``ctx.sh_mask``)."""
-    from ..plugins.sh import num_coeffs
+    from ..physics.sh import num_coeffs
     ctx.sh_order = int(order)
     mask = np.zeros((num_coeffs(ctx.sky_emitter.order), 3), np.float32)
     mask[: num_coeffs(ctx.sh_order)] = 1

@@ -29,9 +29,9 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
-from ..plugins import hits as hitlib
-from ..plugins.lighting import transmittance
-from ..plugins.sh import num_coeffs, sh_basis_numpy
+from ..physics import hits as hitlib
+from ..physics.lighting import transmittance
+from ..physics.sh import num_coeffs, sh_basis_numpy
 
 
 def hemisphere_candidates(count=48, min_elevation_deg=5.0):

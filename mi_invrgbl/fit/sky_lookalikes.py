@@ -26,7 +26,7 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
-from ..plugins import hits as hitlib
+from ..physics import hits as hitlib
 from .render import environment_radiance
 
 

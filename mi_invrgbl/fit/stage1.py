@@ -215,12 +215,12 @@ class Stage1:
 
 
 def _rotation(q_wxyz):
-    from ..plugins.gaussian_ply import quaternion_to_matrix
+    from ..physics.gaussian_ply import quaternion_to_matrix
     return quaternion_to_matrix(q_wxyz.astype(np.float64))
 
 
 def _subset(cloud, mask):
-    from ..plugins.gaussian_ply import GaussianCloud
+    from ..physics.gaussian_ply import GaussianCloud
     pick = lambda a: None if a is None else a[mask].copy()  # noqa: E731
     return GaussianCloud(centers=pick(cloud.centers), scales=pick(cloud.scales),
                          quaternions=pick(cloud.quaternions), opacities=pick(cloud.opacities),
@@ -230,7 +230,7 @@ def _subset(cloud, mask):
 
 
 def _concat(parts, source):
-    from ..plugins.gaussian_ply import GaussianCloud
+    from ..physics.gaussian_ply import GaussianCloud
     cat = lambda name: np.concatenate([getattr(p, name) for p in parts], axis=0)  # noqa: E731
     return GaussianCloud(centers=cat("centers"), scales=cat("scales"), quaternions=cat("quaternions"),
                          opacities=cat("opacities"), normals=cat("normals"), albedo=cat("albedo"),

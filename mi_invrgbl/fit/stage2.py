@@ -37,8 +37,8 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
-from ..plugins import hits as hitlib
-from ..plugins.lighting import (GaussianLighting, GaussianTable, LightingCache, light_at,
+from ..physics import hits as hitlib
+from ..physics.lighting import (GaussianLighting, GaussianTable, LightingCache, light_at,
                                 point_lights, transmittance)
 from . import losses, shading_init
 from .model import MATERIAL_KEYS

@@ -746,7 +746,7 @@ def _colours(state, opts, log):
 # -- write -----------------------------------------------------------------------------
 
 def _cloud(d, opts, source):
-    from ..plugins.gaussian_ply import GaussianCloud
+    from ..physics.gaussian_ply import GaussianCloud
 
     n = len(d["centers"])
     return GaussianCloud(
@@ -759,7 +759,7 @@ def _cloud(d, opts, source):
 
 def _write(src, state, opts, tmp: Path, scene_name: str, data):
     import cv2
-    from ..plugins.gaussian_ply import write_ply
+    from ..physics.gaussian_ply import write_ply
     from ..scene_graph import (Frames, FrameRecord, ObjectRecord, CameraInfo, LidarInfo)
     from .images import write_exr
     from .scene_writer import scene_xml

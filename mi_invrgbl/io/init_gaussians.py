@@ -17,7 +17,7 @@ on one core of the development machine, exact neighbours.
 
 Conventions: a Gaussian's local axes are the columns of its rotation,
 (major tangent, minor tangent, normal); scales are standard deviations
-along them; quaternions are w-first as in :mod:`mi_invrgbl.plugins.gaussian_ply`.
+along them; quaternions are w-first as in :mod:`mi_invrgbl.physics.gaussian_ply`.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Per frame, every (beam, azimuth) ray of the sensor is cast from the LiDAR's
 pose; the hit's true LiDAR albedo and roughness give the return through
-:func:`mi_invrgbl.plugins.brdf.lidar_intensity`:
+:func:`mi_invrgbl.physics.brdf.lidar_intensity`:
 
     I = (rho_lidar + F0 tau^2 min(1, 2 cos^2) / (4 cos^2 (cos^2 (tau^2 - 1) + 1)^2))
         * P_e cos / (pi d^2)
@@ -18,7 +18,7 @@ import math
 import numpy as np
 import mitsuba as mi
 
-from ..plugins import brdf
+from ..physics import brdf
 from .groundtruth import oriented_normals
 
 #: Emitted power of the laser (arbitrary units).

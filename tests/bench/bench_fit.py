@@ -115,7 +115,7 @@ def parse_case(spec):
 # --------------------------------------------------------------- scene
 def densify_cloud(cloud, target, seed=0):
     """``cloud`` split into about ``target`` Gaussians covering the same support."""
-    from mi_invrgbl.plugins.gaussian_ply import GaussianCloud, quaternion_to_matrix
+    from mi_invrgbl.physics.gaussian_ply import GaussianCloud, quaternion_to_matrix
     n = len(cloud.centers)
     if target <= n:
         return cloud
@@ -147,7 +147,7 @@ def densify_cloud(cloud, target, seed=0):
 def build_case(workdir, width, gaussians, columns, seed):
     """Write the fit scene of a case; returns (scene path, Gaussian count)."""
     import fit_scene
-    from mi_invrgbl.plugins.gaussian_ply import read_ply, write_ply
+    from mi_invrgbl.physics.gaussian_ply import read_ply, write_ply
     height = max(8, int(round(width / 3)))
     base = fit_scene.PLY
     count = len(read_ply(base).centers)
@@ -243,7 +243,7 @@ def run_case(spec, args):
     from mi_invrgbl.fit.runner import FitConfig, FitContext, init_materials, select_lighting
     from mi_invrgbl.fit.stage1 import Stage1
     from mi_invrgbl.fit.stage2 import FrozenScene, Stage2
-    from mi_invrgbl.plugins.lighting import LightingCache
+    from mi_invrgbl.physics.lighting import LightingCache
 
     width, gaussians = parse_case(spec)
     workdir = tempfile.mkdtemp(prefix="bench_fit_", dir=args.workdir)

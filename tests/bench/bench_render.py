@@ -140,7 +140,7 @@ def street_cloud(n, seed=0):
     flat_n = n - n_blob
     q[:flat_n] = (1, 0, 0, 0)  # flat Gaussians stay axis-aligned (w x y z)
     # Blobs: normal = shortest axis, computed here so the tensor is complete.
-    from mi_invrgbl.plugins.gaussian_ply import quaternion_to_matrix
+    from mi_invrgbl.physics.gaussian_ply import quaternion_to_matrix
     r = quaternion_to_matrix(q[flat_n:].astype(np.float64))
     k = np.argmin(scales[flat_n:], axis=1)
     normals[flat_n:] = r[np.arange(n_blob), :, k]
@@ -366,7 +366,7 @@ def run_size(n, args, rows):
         rows[-1]["cold"] = cold
         del srays
     else:
-        from mi_invrgbl.plugins.lighting import SHADOW_MAX_HITS as s_cap, point_lights
+        from mi_invrgbl.physics.lighting import SHADOW_MAX_HITS as s_cap, point_lights
         n_sh = n * (args.samples + len(point_lights(scene)))
         rows.append(dict(n=n, info="camera light precompute: skipped above --precompute-max "
                                    "%d (%d shadow rays, cap %d); the cache was filled with "

@@ -20,7 +20,7 @@ import trimesh
 
 import street_truth  # noqa: F401  (sets the Mitsuba variant)
 from mi_invrgbl.commands.eval import source_number  # noqa: E402
-from mi_invrgbl.plugins.gaussian_ply import read_ply  # noqa: E402
+from mi_invrgbl.physics.gaussian_ply import read_ply  # noqa: E402
 from mi_invrgbl.scene_graph import Frames  # noqa: E402
 
 

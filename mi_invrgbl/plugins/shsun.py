@@ -9,7 +9,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .sh import (MAX_ORDER, Y0, as_coeffs, eval_sh_numpy, num_coeffs,  # noqa: F401
+from ..physics.sh import (MAX_ORDER, Y0, as_coeffs, eval_sh_numpy, num_coeffs,  # noqa: F401
                  order_from_count, project_sh, sh_basis_numpy, sphere_quadrature)
 
 _variant = mi.variant()
@@ -78,7 +78,7 @@ class SHSunEmitter(mi.Emitter):
     The sky radiance is :math:`L_{sky}(d) = \max(0, \sum_k c_k Y_k(d))` with the
     real, orthonormal SH basis of ``dr.sh_eval`` (polar axis +z, Condon-Shortley
     phase; :math:`Y_0 = 0.282095`, :math:`Y_{1,-1..1} = -0.4886\,y,\ 0.4886\,z,\
-    -0.4886\,x`, ...; see ``plugins/sh.py``). The sun is a disk of uniform
+    -0.4886\,x`, ...; see ``mi_invrgbl/physics/sh.py``). The sun is a disk of uniform
     radiance :math:`E / (\pi \sin^2 r)` of angular radius :math:`r` around the sun
     direction, so a surface facing it receives exactly the irradiance :math:`E`.
 

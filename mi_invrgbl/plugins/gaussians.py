@@ -8,7 +8,7 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
-from .gaussian_ply import GaussianCloud, GaussianFileError, read_ply
+from ..physics.gaussian_ply import GaussianCloud, GaussianFileError, read_ply
 
 _variant = mi.variant()
 
@@ -36,7 +36,7 @@ class GaussiansDoc:
 
      * - filename
        - |string|
-       - 3DGS-style PLY file (see :mod:`mi_invrgbl.plugins.gaussian_ply`). Plain
+       - 3DGS-style PLY file (see :mod:`mi_invrgbl.physics.gaussian_ply`). Plain
          3DGS files load with defaults (normal = shortest axis, albedo = DC colour,
          roughness 0.5, LiDAR albedo = albedo luminance, sun visibility 1).
      * - centers, scales, quaternions, opacities
@@ -122,7 +122,7 @@ def cloud_from_props(props) -> GaussianCloud:
 
 def apply_transform(cloud: GaussianCloud, matrix: np.ndarray) -> GaussianCloud:
     """Move a cloud by a 4x4 rigid transform with optional uniform scale."""
-    from .gaussian_ply import matrix_to_quaternion, quaternion_to_matrix
+    from ..physics.gaussian_ply import matrix_to_quaternion, quaternion_to_matrix
     lin = matrix[:3, :3].astype(np.float64)
     s = np.cbrt(np.linalg.det(lin))
     rot = lin / s if abs(s) > 0 else lin

@@ -5,8 +5,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from . import brdf, hits as hitlib
-from .lighting import (GaussianLighting, LightingCache, fibonacci_direction,
+from ..physics import brdf, hits as hitlib
+from ..physics.lighting import (GaussianLighting, LightingCache, fibonacci_direction,
                        hash_rotation_of, transmittance)
 
 _variant = mi.variant()

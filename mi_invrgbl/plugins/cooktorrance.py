@@ -1,6 +1,6 @@
 """The ``cooktorrance`` BSDF: the paper's diffuse + Cook-Torrance material.
 
-The maths lives in :mod:`mi_invrgbl.plugins.brdf` so that this BSDF, the
+The maths lives in :mod:`mi_invrgbl.physics.brdf` so that this BSDF, the
 ``invrgbl`` camera integrator and the ``lidar_return`` integrator all evaluate
 exactly the same reflectance.
 """
@@ -10,7 +10,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from . import brdf
+from ..physics import brdf
 
 _variant = mi.variant()
 

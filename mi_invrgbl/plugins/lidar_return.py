@@ -5,7 +5,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from . import brdf, hits as hitlib
+from ..physics import brdf, hits as hitlib
 
 _variant = mi.variant()
 
@@ -76,7 +76,7 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
     at each Gaussian's response peak along the beam rather than at its centre
     (a flat layer of Gaussians then returns exactly what the surface it
     approximates would), and ``cos -> 0``, ``tau -> 0`` stay finite (see
-    :mod:`mi_invrgbl.plugins.brdf`). Returns closer than the sensor's
+    :mod:`mi_invrgbl.physics.brdf`). Returns closer than the sensor's
     ``near_clip`` are not reported (a real LiDAR has a minimum range; it also
     keeps ``1/d^2`` finite).
 
@@ -161,7 +161,7 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
         ``near`` is the distance from the sensor to each ray's origin (scalar
         or per ray), added to every range.
 
-        ``hit_list`` may be a cached :class:`~mi_invrgbl.plugins.hits.HitList`
+        ``hit_list`` may be a cached :class:`~mi_invrgbl.physics.hits.HitList`
         for these rays (frozen geometry); otherwise one is traced.
         """
         nodes = hitlib.gaussian_nodes(scene)

@@ -2,6 +2,6 @@
 
 One module per plugin; each module defines ``register()`` and records the variant
 its classes were built for in ``_variant``. Shared maths lives in
-:mod:`mi_invrgbl.plugins.brdf` (Cook-Torrance) and
-:mod:`mi_invrgbl.plugins.hits` (ray traversal of Gaussians).
+:mod:`mi_invrgbl.physics.brdf` (Cook-Torrance) and
+:mod:`mi_invrgbl.physics.hits` (ray traversal of Gaussians).
 """
