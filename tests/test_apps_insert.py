@@ -32,6 +32,7 @@ import drjit as dr
 
 from mi_invrgbl.cli import main
 from mi_invrgbl.synthetic.writers import read_exr
+import variant_choice
 
 POSE_PX = 1.5
 CHROMA_TOL = 0.02
@@ -78,7 +79,7 @@ IN_SUN, IN_SHADOW = (13.0, 0.0, 0.0), (4.0, 0.0, 0.0)
 
 @pytest.fixture(scope="module")
 def files(tmp_path_factory):
-    mi.set_variant("llvm_ad_rgb")
+    variant_choice.use()
     import mi_invrgbl  # noqa: F401
     import trimesh
     root = tmp_path_factory.mktemp("insert")

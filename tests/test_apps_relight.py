@@ -26,6 +26,7 @@ from mi_invrgbl.errors import UserError
 from mi_invrgbl.metrics import psnr
 from mi_invrgbl.synthetic import StreetConfig, generate_street
 from mi_invrgbl.synthetic.writers import read_exr
+import variant_choice
 
 CFG = dict(seed=5, frames=2, width=128, height=48, spp=16, azimuth_steps=256, night=False)
 #: Relit frames must come within this of the noise floor (dB, sRGB PSNR, peak 1).
@@ -38,7 +39,7 @@ STREET_XML = os.path.join(ROOT, "scenes", "street.xml")
 
 @pytest.fixture(scope="module")
 def street(tmp_path_factory):
-    mi.set_variant("llvm_ad_rgb")
+    variant_choice.use()
     import mi_invrgbl  # noqa: F401  (registers the plugins)
     out = tmp_path_factory.mktemp("relight") / "street"
     generate_street(str(out), StreetConfig(**CFG), log=lambda *a: None)

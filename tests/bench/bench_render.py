@@ -34,6 +34,11 @@ table shows the peak after the row and how much the row raised it
 
 from __future__ import annotations
 
+import sys as _sys, pathlib as _pathlib
+_sys.path.insert(0, str(_pathlib.Path(__file__).resolve().parents[1]))
+import variant_choice  # noqa: E402  (--variant NAME, default $MI_INVRGBL_VARIANT or llvm_ad_rgb)
+variant_choice.from_argv()
+
 import argparse
 import math
 import os
@@ -51,8 +56,6 @@ FWD_TARGET, BWD_TARGET = 1.5, 3.0
 
 
 def _setup_variant():
-    if mi.variant() is None or not mi.variant().startswith("llvm_ad"):
-        mi.set_variant("llvm_ad_rgb")
     import mi_invrgbl  # noqa: F401  (registers the plugins)
 
 

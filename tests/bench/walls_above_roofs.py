@@ -11,6 +11,11 @@ sky, the second the real facade. Ground-truth meshes are mapped into the
 scene's world by the first frame's camera pose.
 """
 
+import sys as _sys, pathlib as _pathlib
+_sys.path.insert(0, str(_pathlib.Path(__file__).resolve().parents[1]))
+import variant_choice  # noqa: E402  (--variant NAME, default $MI_INVRGBL_VARIANT or llvm_ad_rgb)
+variant_choice.from_argv()
+
 import glob
 import os
 import sys
