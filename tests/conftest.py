@@ -22,7 +22,10 @@ def pytest_configure(config):
     chosen = config.getoption("--variant")
     if chosen:
         os.environ["MI_INVRGBL_VARIANT"] = chosen
-    variant_choice.use()
+    try:
+        variant_choice.use()
+    except SystemExit as exc:  # e.g. cuda_ad_rgb on a machine without a GPU
+        pytest.exit(str(exc), returncode=4)
     import mi_invrgbl  # noqa: F401  (registers the plugins for the chosen variant)
 
 
