@@ -14,7 +14,7 @@ import cv2
 import mitsuba as mi
 
 mi.set_variant("llvm_ad_rgb")
-from mi_invrgbl.metrics import srgb_to_linear  # noqa: E402
+from mi_invrgbl.eval.metrics import srgb_to_linear  # noqa: E402
 
 LUM = np.array([0.2126, 0.7152, 0.0722])
 
