@@ -61,7 +61,7 @@ def positions(scene_xml):
 
 def spots(scene_xml):
     """(position, axis, cutoff in degrees) of every spot light of a scene."""
-    from mi_invrgbl.apps.xml_edit import SceneDoc, child_param
+    from mi_invrgbl.scene.xml import SceneDoc, child_param
     doc = SceneDoc.load(str(scene_xml))
     scene = mi.load_file(str(scene_xml))
     out = []

@@ -28,7 +28,8 @@ from mi_invrgbl.io.images import read_exr
 from mi_invrgbl.io.importer import ImportOptions, import_scene
 from mi_invrgbl.io.velodyne import write_velodyne
 from mi_invrgbl.physics.gaussian_ply import read_ply, quaternion_to_matrix
-from mi_invrgbl.scene_graph import Frames, set_frame
+from mi_invrgbl.scene.frames import Frames
+from mi_invrgbl.scene.posing import set_frame
 import variant_choice
 
 TINY = dict(seed=3, frames=6, width=64, height=24, azimuth_steps=256, spp=2, night=False)

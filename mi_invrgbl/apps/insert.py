@@ -31,9 +31,10 @@ import xml.etree.ElementTree as ET
 import numpy as np
 
 from ..errors import UserError
-from . import lighting_edit, xml_edit
-from .posing import NodePoser
-from .xml_edit import SceneDoc
+from . import lighting_edit
+from ..scene import xml as xml_edit
+from ..scene.posing import place
+from ..scene.xml import SceneDoc
 
 MESH_TYPES = {".obj": "obj", ".ply": "ply"}
 
@@ -259,21 +260,23 @@ def insert_doc(doc: SceneDoc, obj: ObjectSource, pose) -> tuple[SceneDoc, bool]:
 
 
 class TrackHook:
-    """Moves the inserted object along a per-frame track (a render hook)."""
+    """Moves the inserted object along a per-frame track (a render hook).
+
+    ``first_pose`` is the track pose the object was inserted at (its XML
+    ``to_world`` is ``placement(obj, first_pose)``); the object's frame here
+    is the placed one (its bottom centre), so the track's poses apply as given.
+    """
 
     def __init__(self, shape_id: str, track, first_pose):
         self.id = shape_id
         self.track = [np.asarray(p, np.float64) for p in track]
         self.first = np.asarray(first_pose, np.float64)
-        self.poser = None
 
     def __call__(self, scene, frame, sensor):
         if frame.index >= len(self.track):
             raise UserError("--track has %d poses but frame %d is rendered (use --frames 0:%d)"
                             % (len(self.track), frame.index, len(self.track)))
-        if self.poser is None:
-            self.poser = NodePoser(scene, self.id, self.first)
-        self.poser.set_pose(self.track[frame.index])
+        place(scene, {self.id: self.track[frame.index]}, loaded={self.id: self.first})
 
 
 def scene_bounds_without(scene, shape_id: str):

@@ -38,7 +38,7 @@ import mitsuba as mi
 
 from ..physics.gaussian_ply import GaussianCloud
 from ..plugins.gaussians import cloud_from_shape, apply_transform
-from ..scene_graph import _rotation_to_quat_xyzw as rotation_to_quat_xyzw
+from ..scene.posing import rotation_to_quat_xyzw
 
 GEOMETRY_KEYS = ("center", "log_scale", "quat", "opacity_logit")
 MATERIAL_KEYS = ("normal", "albedo", "roughness", "lidar_albedo", "sun_visibility")

@@ -29,9 +29,9 @@ import mitsuba as mi
 
 from ..errors import UserError
 from ..physics.lighting import LightingCache
-from ..metrics import psnr
+from ..eval.metrics import psnr
 from ..physics import hits as hitlib
-from ..scene_graph import Frames
+from ..scene.frames import Frames
 from . import losses
 from .losses import LossWeights
 from .model import GaussianModel
@@ -102,7 +102,7 @@ class FitContext:
 
     # ---------------------------------------------------------- set-up
     def load(self):
-        from ..commands.render import load_scene
+        from ..scene.loading import load_scene
         t = time.perf_counter()
         self.frames = Frames.load(self.scene_path)
         self.scene = load_scene(self.scene_path)

@@ -760,9 +760,9 @@ def _cloud(d, opts, source):
 def _write(src, state, opts, tmp: Path, scene_name: str, data):
     import cv2
     from ..physics.gaussian_ply import write_ply
-    from ..scene_graph import (Frames, FrameRecord, ObjectRecord, CameraInfo, LidarInfo)
+    from ..scene.frames import Frames, FrameRecord, ObjectRecord, CameraInfo, LidarInfo
+    from ..scene.imported import imported_scene
     from .images import write_exr
-    from .scene_writer import scene_xml
 
     drive = src.drive
     obs = tmp / "observations"
@@ -838,10 +838,9 @@ def _write(src, state, opts, tmp: Path, scene_name: str, data):
     frames.save(tmp / "frames.json")
     comment = ("Imported by mi-invrgbl import from %s (%d frames). Per-frame sensors "
                "camera_NNNN / lidar_NNNN; dynamic objects at frame 0 (see frames.json and "
-               "mi_invrgbl.scene_graph.set_frame)." % (Path(data).absolute(), len(records)))
-    (tmp / scene_name).write_text(scene_xml(frames, sky_order=opts.sky_order,
-                                            sun_irradiance=opts.sun_irradiance,
-                                            comment=comment))
+               "mi_invrgbl.scene.posing.set_frame)." % (Path(data).absolute(), len(records)))
+    imported_scene(frames, tmp / scene_name, sky_order=opts.sky_order,
+                   sun_irradiance=opts.sun_irradiance, comment=comment).write(str(tmp / scene_name))
     return frames
 
 

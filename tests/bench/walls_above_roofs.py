@@ -24,9 +24,9 @@ import numpy as np
 import trimesh
 
 import street_truth  # noqa: F401  (sets the Mitsuba variant)
-from mi_invrgbl.commands.eval import source_number  # noqa: E402
+from mi_invrgbl.eval.ground_truth import source_number  # noqa: E402
 from mi_invrgbl.physics.gaussian_ply import read_ply  # noqa: E402
-from mi_invrgbl.scene_graph import Frames  # noqa: E402
+from mi_invrgbl.scene.frames import Frames  # noqa: E402
 
 
 def gt_from_scene(root, gt_dir):
