@@ -31,13 +31,12 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+# Per-Gaussian attribute widths and the defaults a plain ``ellipsoids`` shape
+# without them reads: from the one table of per-Gaussian fields.
+from .fields import ATTRIBUTE_DEFAULTS, ATTRIBUTE_WIDTHS
+
 #: Largest per-hit opacity: keeps log(1 - a) finite for the transmittance.
 ALPHA_MAX = 0.99
-#: Per-Gaussian attribute defaults when a plain ``ellipsoids`` shape lacks them.
-ATTRIBUTE_DEFAULTS = {"albedo": 0.5, "roughness": 0.5, "lidar_albedo": 0.5,
-                      "sun_visibility": 1.0}
-ATTRIBUTE_WIDTHS = {"normal": 3, "albedo": 3, "roughness": 1, "lidar_albedo": 1,
-                    "sun_visibility": 1}
 #: Minimum scale used when mapping rays into a Gaussian's frame.
 MIN_SCALE = 1e-7
 
