@@ -306,6 +306,23 @@ def composite(g: GaussianHits, weights, values):
     return type(v)(*[reduce(v[i]) for i in range(len(v))])
 
 
+def composite_front_to_back(g: GaussianHits, weights, t_after, per_hit: dict, behind: dict = None):
+    """Alpha compositing of every channel: ``sum_k w_k c_k + T c_behind``.
+
+    ``weights`` and ``t_after`` come from :func:`blend_weights` (or a frozen
+    trace); ``per_hit`` maps a channel name to its per-hit values (or a
+    constant, e.g. 1 for the accumulated opacity); ``behind`` maps a channel
+    name to the per-ray value of what the ray meets behind the Gaussians (a
+    mesh, the sky), already zero where there is nothing, seen through the
+    transmittance ``T`` they leave. Returns channel name -> per-ray value.
+    Every integrator and the fit composite through this one function.
+    """
+    out = {name: composite(g, weights, v) for name, v in per_hit.items()}
+    for name, v in (behind or {}).items():
+        out[name] = out[name] + t_after * v
+    return out
+
+
 def ad_integrator_base():
     """Mitsuba's Python ``ADIntegrator`` base class for the active variant."""
     import importlib
