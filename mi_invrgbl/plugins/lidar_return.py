@@ -181,10 +181,6 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
         row_hits = dr.gather(mi.UInt32, row, ray_of_hit)
         factor = brdf.lidar_return_factor(rho, tau, g.cos_theta, self.model, self.f0)
         intensity_k = self._response(factor, g.cos_theta, dist, row_hits, power)
-        intensity = hitlib.composite(g, w, intensity_k)
-        alpha = hitlib.composite(g, w, mi.Float(1.0))
-        depth_sum = hitlib.composite(g, w, dist)
-        rho_sum = hitlib.composite(g, w, rho)
 
         # Opaque surface behind the Gaussians.
         si = hit_list.surface_interaction(rays)
@@ -193,11 +189,11 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
         s_cos = dr.abs(mi.Frame3f.cos_theta(si.wi))
         s_dist = si.t + near
         s_int = self._response(s_factor, s_cos, s_dist, row, power)
-        s_w = dr.select(surf, t_after, 0.0)
-        intensity += s_w * dr.select(surf, s_int, 0.0)
-        alpha += s_w
-        depth_sum += s_w * dr.select(surf, s_dist, 0.0)
-        rho_sum += s_w * dr.select(surf, s_rho, 0.0)
+        c = hitlib.composite_front_to_back(
+            g, w, t_after, {"intensity": intensity_k, "alpha": 1.0, "range": dist, "rho": rho},
+            {"intensity": dr.select(surf, s_int, 0.0), "alpha": dr.select(surf, 1.0, 0.0),
+             "range": dr.select(surf, s_dist, 0.0), "rho": dr.select(surf, s_rho, 0.0)})
+        intensity, alpha, depth_sum, rho_sum = c["intensity"], c["alpha"], c["range"], c["rho"]
 
         hit = alpha >= self.hit_threshold
         norm = dr.rcp(dr.maximum(alpha, 1e-8))
