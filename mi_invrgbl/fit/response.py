@@ -38,6 +38,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..physics.lidar_response import colocated_intensity_np, format_gains  # noqa: F401
+
 #: Returns at more grazing incidence than this are ignored (cos theta).
 MIN_COS = 0.05
 #: Huber threshold in units of the residual scale (95 % efficiency for Gaussian noise).
@@ -83,15 +85,12 @@ class SensorResponse:
                 "iterations": int(self.iterations), **self.extra}
 
     def predict(self, rho, distance, cos_theta, beam, power: float = 1.0) -> np.ndarray:
-        """Intensity of Lambertian returns under this response (numpy)."""
-        g = np.asarray(self.beam_gains)[np.asarray(beam, np.int64)]
-        c = np.clip(np.asarray(cos_theta, np.float64), 0.0, 1.0)
-        return (g * np.asarray(rho) * power * c ** self.angle_exponent
-                / (np.pi * np.asarray(distance, np.float64) ** self.range_exponent))
-
-
-def format_gains(gains) -> str:
-    return ", ".join("%.6g" % g for g in np.asarray(gains, np.float64).ravel())
+        """Intensity of Lambertian returns under this response (numpy), with
+        the integrator's formula and clamps."""
+        g = np.asarray(self.beam_gains, np.float64)
+        g = g[np.minimum(np.asarray(beam, np.int64), g.size - 1)]
+        return colocated_intensity_np(rho, cos_theta, distance, g, power,
+                                      self.angle_exponent, self.range_exponent)
 
 
 def _weighted_group_mean(values, groups, weights, n_groups, wsum):
