@@ -95,3 +95,48 @@ def test_fit_and_integrator_render_the_same_response(tmp_path):
     bare = lr.LidarResponse(integ.range_exponent, integ.angle_exponent, integ.beam_gains)
     got1 = np.array(fit_render.lidar_shaded(nodes, rays, row, mi.Float(near), fh, bare)["intensity"])
     assert np.allclose(got1 * 2.5, ref, rtol=2e-3)
+
+
+@pytest.mark.parametrize("beam_column", [True, False])
+def test_rays_mode_gain_follows_each_rays_beam(tmp_path, beam_column):
+    """A ray list (film N x 1) renders the same per-beam gains as the grid
+    sensor with the same beams: carried in column 7, or derived from the
+    rays' elevations."""
+    elev = np.array([-20.0, -35.0, -60.0])
+    W, h = 8, 2.0
+    grid = {"type": "lidar", "elevations": ",".join("%g" % e for e in elev), "far_clip": 1000.0,
+            "to_world": mi.ScalarTransform4f().translate([0, 0, h]),
+            "film": {"type": "hdrfilm", "width": W, "height": 3, "rfilter": {"type": "box"}}}
+    grid_sensor = mi.load_dict(grid)
+    d = grid_sensor.ray_directions_local().reshape(-1, 3)
+    beam = np.repeat(np.arange(3), W)
+    perm = np.random.default_rng(0).permutation(len(d))      # any ray order
+    cols = [np.zeros((len(d), 3)), d] + ([beam[:, None]] if beam_column else [])
+    np.save(tmp_path / "rays.npy", np.hstack(cols)[perm])
+    rays = {"type": "lidar", "rays": str(tmp_path / "rays.npy"), "far_clip": 1000.0,
+            "to_world": mi.ScalarTransform4f().translate([0, 0, h])}
+    sensor = mi.load_dict(rays)
+    assert sensor.n_beams == 3
+    assert np.array_equal(np.array(sensor.beam_index()), beam[perm])
+    integ = mi.load_dict({"type": "lidar_return", "beam_gains": "0.5, 1.5, 2.0"})
+    plane = {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(100.0),
+             "bsdf": {"type": "cooktorrance", "lidar_albedo": 0.25, "roughness": 0.6}}
+    out = {}
+    for name, s in (("grid", grid), ("rays", rays)):
+        scene = mi.load_dict({"type": "scene", "plane": plane, "lidar": s})
+        out[name] = np.array(mi.render(scene, integrator=integ))[..., 0].ravel()
+    assert np.all(out["grid"] > 0)
+    assert np.allclose(out["rays"], out["grid"][perm], rtol=1e-5)
+    # Each ray carries its own beam's gain, not beam 0's.
+    scene = mi.load_dict({"type": "scene", "plane": plane, "lidar": rays})
+    unit = np.array(mi.render(scene, integrator=mi.load_dict({"type": "lidar_return"})))[..., 0].ravel()
+    assert np.allclose(out["rays"] / unit, np.array([0.5, 1.5, 2.0])[beam[perm]], rtol=1e-5)
+
+
+def test_bad_beam_column_is_refused(tmp_path):
+    a = np.zeros((3, 7))
+    a[:, 5] = -1.0
+    a[0, 6] = 0.5
+    np.save(tmp_path / "r.npy", a)
+    with pytest.raises(Exception, match="column 7"):
+        mi.load_dict({"type": "lidar", "rays": str(tmp_path / "r.npy")})

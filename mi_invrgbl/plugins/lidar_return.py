@@ -47,7 +47,9 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
          report range-compensated reflectivity (KITTI's HDL-64E) fit ``b ~ 0``.
      * - beam_gains
        - |string|
-       - Per-beam gain ``g_beam``, one value per film row (comma separated),
+       - Per-beam gain ``g_beam``, one value per beam (comma separated; the
+         beam is the ``lidar`` sensor's ``beam_index``: the film row, or in
+         ``rays`` mode each ray's own beam),
          or a single value. (Default: 1)
      * - f0
        - |float|
@@ -112,13 +114,20 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
     # ------------------------------------------------------------------ rays
     @staticmethod
     def beam_rays(sensor):
-        """One ray per film pixel centre (row-major), and its row index."""
+        """One ray per film pixel centre (row-major), and its beam.
+
+        The beam is the ``lidar`` sensor's :py:meth:`beam_at` (the film row of
+        a spinning sensor, the ray's own beam in ``rays`` mode); other sensors
+        use the film row.
+        """
         size = sensor.film().crop_size()
         width, height = int(size[0]), int(size[1])
         idx = dr.arange(mi.UInt32, width * height)
         row = idx // width
         col = idx - row * width
         pos = mi.Point2f((mi.Float(col) + 0.5) / width, (mi.Float(row) + 0.5) / height)
+        if hasattr(sensor, "beam_at"):
+            row = sensor.beam_at(pos)
         rays, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5), True)
         near = getattr(sensor, "near_clip", 0.0)
         near = float(near() if callable(near) else near)
