@@ -1,0 +1,1 @@
+"""Evaluation library: metrics, baselines and scoring of fitted scenes."""
