@@ -79,7 +79,7 @@ def test_simulation_matches_the_generators_scans(street, simulated):
 
 
 def test_kitti_bin_points_lie_on_the_generators_points(street, simulated):
-    from mi_invrgbl.fit.baselines import NearestNeighbourIntensity
+    from mi_invrgbl.eval.baselines import NearestNeighbourIntensity
     points, intensity = read_velodyne(str(simulated / "frame_0000.bin"))
     sim = read_exr(str(simulated / "frame_0000.exr"))
     assert len(points) == int(np.sum(sim["hit"] > 0))

@@ -292,7 +292,7 @@ def test_eval_errors(fit_dir, tmp_path, capsys):
 
 
 def test_nn_baseline():
-    from mi_invrgbl.fit.baselines import NearestNeighbourIntensity, load_points
+    from mi_invrgbl.eval.baselines import NearestNeighbourIntensity, load_points
     rng = np.random.default_rng(0)
     pts = np.column_stack([rng.uniform(-20, 20, (5000, 3)) + [500, -300, 0],
                            rng.uniform(0, 1, 5000)])
@@ -319,7 +319,7 @@ def test_nn_baseline():
 @pytest.mark.slow
 def test_nn_baseline_million_points_fast():
     import time
-    from mi_invrgbl.fit.baselines import NearestNeighbourIntensity
+    from mi_invrgbl.eval.baselines import NearestNeighbourIntensity
     rng = np.random.default_rng(1)
     pts = np.column_stack([rng.uniform(0, 80, (1_000_000, 3)), rng.uniform(0, 1, 1_000_000)])
     t = time.perf_counter()

@@ -6,6 +6,7 @@
   channels read by name).
 * :mod:`.rendering`    -- rendering a frame's camera and LiDAR, swapping the sky.
 * :mod:`.ground_truth` -- material and sun metrics against a synthetic street's truth.
+* :mod:`.baselines`    -- the nearest-neighbour LiDAR intensity lookup.
 * :mod:`.scoring`      -- :func:`.scoring.evaluate`: every selected frame
   scored, the table, ``metrics.json``.
 

@@ -11,7 +11,7 @@ with ``lidar_return``, and the renders are compared with the observations:
 * LiDAR: intensity RMSE over the beams that return in the observation,
   range error (mean |dr| where both return), ray-drop accuracy (all beams),
   and the nearest-neighbour baseline's intensity RMSE on the same beams
-  (:mod:`mi_invrgbl.fit.baselines`, built from the *training* frames' points).
+  (:mod:`mi_invrgbl.eval.baselines`, built from the *training* frames' points).
 * synthetic ground truth (``frames.json`` ``ground_truth.dir``, as written by
   ``make-scene street``): albedo RMSE after a per-channel scale fit, roughness
   MAE, normal angular error (degrees), LiDAR-albedo RMSE (absolute and
@@ -163,7 +163,7 @@ def evaluate(scene_path, frames_spec="held-out", spp=0, samples=None, lidar_mode
 
     nn = None
     if baseline:
-        from ..fit.baselines import NearestNeighbourIntensity, load_points
+        from .baselines import NearestNeighbourIntensity, load_points
         held = {k for k in range(len(frames)) if frames[k].held_out} | set(positions)
         paths = [frames[k].points for k in range(len(frames))
                  if k not in held and frames[k].points is not None

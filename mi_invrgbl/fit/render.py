@@ -20,6 +20,7 @@ import mitsuba as mi
 
 from ..physics import brdf, hits as hitlib
 from ..physics.lighting import environment_radiance
+from ..physics.lidar_response import LidarResponse as Response  # noqa: F401 (the fit's name)
 
 
 # ---------------------------------------------------------------- stage 1
@@ -123,22 +124,6 @@ def camera_shaded(integrator, scene, lighting, nodes, rays, fh: FrozenHits):
     return hitlib.composite_front_to_back(
         g, fh.weight, fh.t_after, {"rgb": colour, "albedo": albedo, "normal": n, "roughness": tau,
                                    "lidar_albedo": rho, "alpha": 1.0}, {"rgb": sky})
-
-
-@dataclass
-class Response:
-    """LiDAR sensor response ``I = g_beam (rho + pi f_s) cos^a / (pi d^b)``."""
-    range_exponent: mi.Float
-    angle_exponent: mi.Float
-    beam_gains: mi.Float
-
-    def __call__(self, factor, cos_theta, distance, row):
-        gain = dr.gather(mi.Float, self.beam_gains,
-                         dr.minimum(row, dr.width(self.beam_gains) - 1))
-        d = dr.maximum(distance, 1e-3)
-        c = dr.clip(cos_theta, 1e-4, 1.0)
-        return gain * factor * dr.exp(self.angle_exponent * dr.log(c)
-                                      - self.range_exponent * dr.log(d)) / dr.pi
 
 
 def lidar_shaded(nodes, rays, row, near, fh: FrozenHits, response: Response,

@@ -438,21 +438,23 @@ class _LenientPoses(dict):
 
 # -- accumulate ----------------------------------------------------------------------
 
-def _lidar_table(src, opts):
-    syn = src.synthetic
-    if syn and isinstance(syn.get("lidar"), dict):
-        li = syn["lidar"]
-        beams = int(opts.beams or li.get("beams", 64))
-        top, bottom = li.get("elevation_deg", [2.0, -24.9])
-        return beams, np.radians(np.linspace(float(top), float(bottom), beams))
-    return int(opts.beams or 64), None
+def _lidar_table(state, opts, log):
+    """Beam count and table from the sweeps themselves (any spinning sensor,
+    any point order); ``None`` for the table when KITTI's firing order
+    assigns the beams sweep by sweep."""
+    from .range_image import detect_beam_layout
+    layout = detect_beam_layout([pts for pts, _ in state["scans"]], n_beams=opts.beams)
+    log("[import] LiDAR: %s" % layout.describe())
+    if layout.method == "scan_order":
+        return layout.n_beams, None
+    return layout.n_beams, layout.elevations
 
 
 def _intensity_kind(src, opts):
     if opts.intensity != "auto":
         kind = opts.intensity
     elif src.synthetic is not None:
-        kind = "raw"
+        kind = ((src.synthetic or {}).get("lidar") or {}).get("intensity", "raw")
     else:
         kind = "reflectivity"      # KITTI's HDL-64 (raw and odometry layouts)
     ref = opts.reference_range
@@ -467,7 +469,7 @@ def _intensity_kind(src, opts):
 def _accumulate(src, state, opts, log):
     from .range_image import range_image
 
-    beams, table = _lidar_table(src, opts)
+    beams, table = _lidar_table(state, opts, log)
     state["intensity"] = _intensity_kind(src, opts)
     W = opts.azimuth_steps
     poses = state["poses"]
