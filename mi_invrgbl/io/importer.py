@@ -96,6 +96,7 @@ class ImportOptions:
     sky_order: int = 2
     sun_irradiance: float = 0.0
     extend_walls: float = 10.0         # metres above the top beam's hits (0: off)
+    triangulate: bool = True           # camera-only geometry (io/triangulate.py)
     overwrite: bool = False
     verify: bool = True
 
@@ -291,6 +292,9 @@ def import_scene(data, out_xml, options: ImportOptions | None = None, log=print)
     if opts.extend_walls > 0:
         steps.run("extend walls", _extend_walls, state, opts, log)
     steps.run("normals", _background, state, opts, log)
+    if opts.triangulate:
+        from .triangulate import import_step
+        steps.run("triangulate", import_step, src, state, opts, log)
     steps.run("objects", _objects, state, opts, log)
     steps.run("colours", _colours, state, opts, log)
 
