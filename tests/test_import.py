@@ -460,13 +460,23 @@ def test_existing_output(street, tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     (out / "keep.txt").write_text("x")
-    with pytest.raises(UserError, match="already exists"):
-        import_scene(street, out / "scene.xml", ImportOptions(frames="0:2", **TINY_OPTS),
+    # a folder mi-invrgbl did not write is refused, with or without --overwrite
+    for overwrite in (False, True):
+        with pytest.raises(UserError, match="not written by mi-invrgbl"):
+            import_scene(street, out / "scene.xml",
+                         ImportOptions(frames="0:2", overwrite=overwrite, **TINY_OPTS),
+                         log=_quiet)
+    assert (out / "keep.txt").read_text() == "x" and _no_leftovers(tmp_path)
+    ours = tmp_path / "ours"
+    import_scene(street, ours / "scene.xml", ImportOptions(frames="0:3", **TINY_OPTS), log=_quiet)
+    with pytest.raises(UserError, match="--overwrite"):
+        import_scene(street, ours / "scene.xml", ImportOptions(frames="0:2", **TINY_OPTS),
                      log=_quiet)
-    assert (out / "keep.txt").exists()
-    rep = import_scene(street, out / "scene.xml",
+    # --overwrite replaces the import's files and keeps a file the user added
+    (ours / "notes.txt").write_text("mine")
+    rep = import_scene(street, ours / "scene.xml",
                        ImportOptions(frames="0:2", overwrite=True, **TINY_OPTS), log=_quiet)
-    assert not (out / "keep.txt").exists() and (out / "scene.xml").is_file()
+    assert (ours / "notes.txt").read_text() == "mine" and (ours / "scene.xml").is_file()
     assert len(Frames.load(rep.scene)) == 2 and _no_leftovers(tmp_path)
 
 

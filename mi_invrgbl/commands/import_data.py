@@ -97,6 +97,8 @@ def run(args) -> int:
     print("[import] counts: " + ", ".join("%s %s" % (k, ("%.3f" % v) if isinstance(v, float)
                                                       else v) for k, v in report.counts.items()))
     if report.odometry:
-        print("[import] odometry: " + ", ".join("%s %.3f" % kv for kv in report.odometry.items()))
+        print("[import] odometry: " + ", ".join(
+            "%s %s" % (k, ("%.3f" % v) if isinstance(v, float) else v)
+            for k, v in report.odometry.items()))
     print("[import] wrote %s" % report.scene)
     return 0

@@ -60,12 +60,12 @@ import json
 import os
 from pathlib import Path
 import shutil
-import tempfile
 import time
 import warnings
 
 import numpy as np
 
+from .. import outdir
 from ..errors import UserError
 from . import init_gaussians as ig
 from .objects import ObjectTrack, tracks_to_objects, in_box, box_surface_samples
@@ -241,80 +241,43 @@ def _read_image_uint8(path, size, crop=None):
     return np.ascontiguousarray(img[:, :, ::-1])     # RGB uint8
 
 
-def _remove_ground(points, clearance=0.3):
-    """Drop points less than ``clearance`` above the road (the 5th height
-    percentile of points 3-20 m away): lets ICP see motion along a corridor."""
-    r = np.hypot(points[:, 0], points[:, 1])
-    near = (r > 3) & (r < 20)
-    if near.sum() < 100:
-        return points
-    ground = np.percentile(points[near, 2], 5)
-    return points[points[:, 2] > ground + clearance]
-
-
 # ----------------------------------------------------------------------------
 # The import
 # ----------------------------------------------------------------------------
 
-def _out_paths(out_xml, overwrite):
+def _out_paths(out_xml):
     out_xml = Path(out_xml).absolute()
     if out_xml.suffix.lower() != ".xml":
         raise UserError(f"{out_xml}: the output must be a scene file DIR/scene.xml")
-    out_dir = out_xml.parent
-    if out_dir.exists() and not overwrite:
-        if out_dir.is_dir() and not any(out_dir.iterdir()):
-            pass
-        else:
-            raise UserError(f"{out_dir}: output folder already exists; choose a new one "
-                            "or pass --overwrite")
-    if out_dir.exists() and not out_dir.is_dir():
-        raise UserError(f"{out_dir}: exists and is not a folder")
-    parent = out_dir.parent
-    try:
-        parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"{parent}: cannot create the output's parent ({exc.strerror})") from None
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise UserError(f"{parent}: cannot write here (permission denied)")
-    return out_xml, out_dir, parent
+    return out_xml, out_xml.parent
 
 
 def import_scene(data, out_xml, options: ImportOptions | None = None, log=print) -> ImportReport:
     """Run the whole import (see the module docstring); returns the report."""
     opts = (options or ImportOptions()).validate()
-    out_xml, out_dir, parent = _out_paths(out_xml, opts.overwrite)
+    out_xml, out_dir = _out_paths(out_xml)
+    # Checked (and a temporary folder made) before any work: see mi_invrgbl.outdir.
+    out = outdir.prepare(out_dir, "import", inputs=[data], overwrite=opts.overwrite)
     steps = _Steps(log)
     t_total = time.perf_counter()
-
-    src, state = steps.run("read", _read, data, opts, log)
-    steps.run("odometry", _odometry, src, state, opts, log)
-    steps.run("accumulate", _accumulate, src, state, opts, log)
-    if opts.extend_walls > 0:
-        steps.run("extend walls", _extend_walls, state, opts, log)
-    steps.run("normals", _background, state, opts, log)
-    if opts.triangulate:
-        from .triangulate import import_step
-        steps.run("triangulate", import_step, src, state, opts, log)
-    steps.run("objects", _objects, state, opts, log)
-    steps.run("colours", _colours, state, opts, log)
-
     try:
-        tmp = Path(tempfile.mkdtemp(prefix=".%s.partial-" % out_dir.name, dir=parent))
-    except OSError as exc:
-        raise UserError(f"{parent}: cannot write here ({exc.strerror})") from None
-    try:
-        frames = steps.run("write", _write, src, state, opts, tmp, out_xml.name, data)
+        src, state = steps.run("read", _read, data, opts, log)
+        steps.run("odometry", _odometry, src, state, opts, log)
+        steps.run("accumulate", _accumulate, src, state, opts, log)
+        if opts.extend_walls > 0:
+            steps.run("extend walls", _extend_walls, state, opts, log)
+        steps.run("normals", _background, state, opts, log)
+        if opts.triangulate:
+            from .triangulate import import_step
+            steps.run("triangulate", import_step, src, state, opts, log)
+        steps.run("objects", _objects, state, opts, log)
+        steps.run("colours", _colours, state, opts, log)
+        frames = steps.run("write", _write, src, state, opts, out.path, out_xml.name, data)
         if opts.verify:
-            steps.run("verify", _verify, tmp / out_xml.name)
-        if out_dir.exists():
-            old = Path(tempfile.mkdtemp(prefix=".%s.old-" % out_dir.name, dir=parent))
-            os.rename(out_dir, old / "x")
-            os.rename(tmp, out_dir)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.rename(tmp, out_dir)
+            steps.run("verify", _verify, out.path / out_xml.name)
+        out.commit()
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        out.discard()
         raise
     steps.times["total"] = time.perf_counter() - t_total
     report = ImportReport(out_dir, out_xml, steps.times, state["counts"], state["odometry"],
@@ -371,19 +334,18 @@ def _odometry(src, state, opts, log):
 
     drive = src.drive
     kept = state["positions"]
-    estimated = None
-    if drive.poses is None or opts.check_odometry:
-        t = time.perf_counter()
-        estimated = odometry.lidar_odometry([s[0] for s in state["scans"]])
-        state["odometry"]["kiss_icp_s"] = time.perf_counter() - t
     if drive.poses is not None:
         P = drive.poses[kept]
         poses = np.linalg.inv(P[0]) @ P
         source = drive.pose_source
-        if estimated is not None:
-            err = odometry.trajectory_error(estimated, poses)
+        if opts.check_odometry:
             t = time.perf_counter()
-            est_ng = odometry.lidar_odometry([_remove_ground(s[0]) for s in state["scans"]])
+            full = odometry.lidar_odometry([s[0] for s in state["scans"]])
+            state["odometry"]["kiss_icp_s"] = time.perf_counter() - t
+            err = odometry.trajectory_error(full, poses)
+            t = time.perf_counter()
+            est_ng = odometry.lidar_odometry([odometry.remove_ground(s[0])
+                                              for s in state["scans"]])
             err_ng = odometry.trajectory_error(est_ng, poses)
             state["odometry"].update({
                 "ate_m": err.ate_m, "drift_percent": err.drift_percent,
@@ -396,11 +358,22 @@ def _odometry(src, state, opts, log):
             log("[import] odometry check vs %s: %s" % (source, err))
             log("[import] odometry check, ground points dropped: %s" % err_ng)
     else:
-        poses = estimated
+        t = time.perf_counter()
+        times = drive.timestamps[kept] if drive.timestamps is not None else None
+        poses, checked = odometry.checked_odometry(
+            [s[0] for s in state["scans"]], timestamps=times, images=state["images"],
+            K=state["K"], T_velo_to_cam=drive.T_velo_to_cam2, source=str(drive.root))
+        state["odometry"]["kiss_icp_s"] = time.perf_counter() - t
+        state["odometry"].update(checked.summary())
         source = "odometry"
-        length = float(np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum())
-        log("[import] poses by LiDAR odometry: %.1f m travelled over %d frames"
-            % (length, len(poses)))
+        log("[import] poses by LiDAR odometry (ground removed): %.1f m travelled over %d frames"
+            "%s" % (checked.length_m, len(poses),
+                    "" if checked.full_sweep_length_m is None else
+                    " (full sweeps: %.1f m)" % checked.full_sweep_length_m))
+        for c in checked.checks:
+            log("[import] odometry check, %s: %s (%s)" % (c.name, "agrees" if c.agrees
+                                                        else "DISAGREES", c.detail))
+    state["odometry"]["trajectory_length_m"] = odometry.path_length(poses)
     state["poses"] = poses
     state["pose_source"] = source
     T_velo_to_cam2 = drive.T_velo_to_cam2
