@@ -172,7 +172,7 @@ class TraceCounter:
     """Counts the rays that go through ``hits.trace`` (all tracing goes there)."""
 
     def __init__(self):
-        from mi_invrgbl.plugins import hits
+        from mi_invrgbl.physics import hits
         self.module, self.original = hits, hits.trace
         self.rays = 0
         self.calls = 0

@@ -226,8 +226,8 @@ def lidar_rays(scene, integrator):
 
 def shadow_rays(scene, integrator):
     """The visibility rays of ``invrgbl``'s lighting precompute and their cap."""
-    from mi_invrgbl.plugins import hits as hitlib
-    from mi_invrgbl.plugins import lighting as L
+    from mi_invrgbl.physics import hits as hitlib
+    from mi_invrgbl.physics import lighting as L
     nodes = hitlib.gaussian_nodes(scene)
     with dr.suspend_grad():
         # As GaussianLighting does, without filling (i.e. tracing) a cache.
@@ -248,8 +248,8 @@ def shadow_rays(scene, integrator):
 
 def fill_lighting_cache(scene, integrator):
     """Fill ``invrgbl``'s lighting cache with visibility 1 without tracing it."""
-    from mi_invrgbl.plugins import hits as hitlib
-    from mi_invrgbl.plugins import lighting as L
+    from mi_invrgbl.physics import hits as hitlib
+    from mi_invrgbl.physics import lighting as L
     nodes = hitlib.gaussian_nodes(scene)
     lights = L.point_lights(scene)
     G = sum(node.count for node in nodes)
@@ -264,7 +264,7 @@ def fill_lighting_cache(scene, integrator):
 
 
 def count_hits(scene, rays, max_hits, min_transmittance=1e-3):
-    from mi_invrgbl.plugins import hits as hitlib
+    from mi_invrgbl.physics import hits as hitlib
     h = hitlib.trace(scene, rays, max_hits, min_transmittance)
     return int(dr.sum(h.count)[0])
 

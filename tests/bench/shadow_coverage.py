@@ -26,7 +26,7 @@ import mitsuba as mi
 from street_truth import ground_truth, source_number, truth_map
 import drjit as dr  # noqa: E402
 import mi_invrgbl  # noqa: E402,F401
-from mi_invrgbl.plugins import hits as hitlib  # noqa: E402
+from mi_invrgbl.physics import hits as hitlib  # noqa: E402
 from mi_invrgbl.physics.lighting import GaussianLighting, LightingCache  # noqa: E402
 
 
