@@ -411,7 +411,7 @@ def import_step(src, state, opts, log, options: TriangulationOptions | None = No
     """``mi-invrgbl import``'s camera-geometry step: triangulate the training
     frames (full-resolution images, the drive's own intrinsics), keep the
     points the LiDAR lacks and append them as Gaussians to the background
-    (``state['background']``, before colours). LiDAR albedo of those
+    (``state.background``, before colours). LiDAR albedo of those
     Gaussians: the median of the LiDAR's (they are never scanned). They
     count towards ``--max-points`` (at most a quarter of it): as many LiDAR
     Gaussians, drawn at random, make room."""
@@ -419,7 +419,7 @@ def import_step(src, state, opts, log, options: TriangulationOptions | None = No
 
     options = options or TriangulationOptions()
     drive = src.drive
-    positions = state["positions"]
+    positions = state.positions
     W0, H0 = drive.image_size
     training = [i for i in range(len(positions)) if not held_out(i)]
     if len(training) < 2:
@@ -429,10 +429,10 @@ def import_step(src, state, opts, log, options: TriangulationOptions | None = No
     def load(i):
         return _read_image_uint8(drive.image_paths[positions[i]], (W0, H0))
 
-    pts = triangulate_frames(load, state["cam_poses"], drive.K, training, options, log=log)
+    pts = triangulate_frames(load, state.cam_poses, drive.K, training, options, log=log)
     n_all = len(pts)
-    pts = pts.subset(far_from(pts.points, state["bg"]["points"], options.lidar_clearance))
-    bg = state["background"]
+    pts = pts.subset(far_from(pts.points, state.bg.points, options.lidar_clearance))
+    bg = state.background
     n_bg = len(bg["centers"])
     # The camera-only Gaussians take their place inside --max-points: the
     # same number of LiDAR Gaussians (drawn at random, seeded) make room.
@@ -450,7 +450,7 @@ def import_step(src, state, opts, log, options: TriangulationOptions | None = No
     g["lidar_albedo"][:] = float(np.median(bg["lidar_albedo"])) if len(bg["lidar_albedo"]) else 0.0
     for key in ("centers", "scales", "quaternions", "normals", "lidar_albedo"):
         bg[key] = np.concatenate([bg[key], g[key].astype(bg[key].dtype)])
-    state["counts"]["camera_gaussians"] = len(pts)
-    state["counts"]["background_gaussians"] = int(len(bg["centers"]))
+    state.counts["camera_gaussians"] = len(pts)
+    state.counts["background_gaussians"] = int(len(bg["centers"]))
     log("[import] %d triangulated points, %d where the LiDAR has no point within %.2f m "
         "-> camera-only Gaussians" % (n_all, len(pts), options.lidar_clearance))
