@@ -62,10 +62,7 @@ LAYERS = (
 
 
 #: (importing module, imported module) -> the move that removes the import.
-PENDING = {
-    ("mi_invrgbl.eval.scoring", "mi_invrgbl.fit.baselines"):
-        "the nearest-neighbour baseline moves to mi_invrgbl/eval/baselines.py",
-}
+PENDING: dict = {}
 
 
 def module_name(path: Path) -> str:
