@@ -108,8 +108,13 @@ def _beam_of(local_dirs, table_rad):
     return np.where(np.abs(elev - table_rad[lo]) <= np.abs(elev - table_rad[hi]), lo, hi)
 
 
-def frame_rays(rec, sensor, table_deg) -> FrameRays:
-    """Returns (raw points) and non-returns (range-image pixels) of frame ``rec``."""
+def frame_rays(rec, sensor, table_deg, pattern=None) -> FrameRays:
+    """Returns (raw points) and non-returns of frame ``rec``.
+
+    Non-returns are the range image's pixels without a return, or, for an
+    explicit ray ``pattern`` ((N, 3) unit directions in the sensor frame), the
+    pattern's rays that no point of the sweep lies on (within 1e-3 rad).
+    """
     from ..io.images import read_exr
     T = np.asarray(rec.lidar_to_world, np.float64)
     o, R = T[:3, 3], T[:3, :3]
@@ -124,7 +129,15 @@ def frame_rays(rec, sensor, table_deg) -> FrameRays:
     beam = _beam_of(d @ R, table)
     dirs_nr = np.zeros((0, 3))
     beam_nr = np.zeros(0, np.int64)
-    if rec.lidar_scan is not None and sensor is not None:
+    if pattern is not None:
+        pat = np.asarray(pattern, np.float64).reshape(-1, 3)
+        pat = pat / np.linalg.norm(pat, axis=1, keepdims=True)
+        near = NearestNeighbourIntensity(np.c_[d @ R, np.zeros(len(d))])
+        _, dist = near.query(pat)
+        miss = dist > 1e-3
+        dirs_nr = pat[miss] @ R.T
+        beam_nr = _beam_of(pat[miss], table)
+    elif rec.lidar_scan is not None and sensor is not None:
         img, names = read_exr(str(rec.lidar_scan))
         hit = img[..., [n.lower() for n in names].index("hit")] > 0.5
         local = np.asarray(sensor.ray_directions_local(), np.float64)
@@ -205,11 +218,13 @@ def _pose(scene, frames, k):
 
 
 def score_scene(scene_xml, scene_lidar_xml=None, positions=None, model: str | None = None,
-                log=print) -> dict:
+                pattern=None, log=print) -> dict:
     """Score a (fitted) scene's LiDAR on raw held-out points against the lookup.
 
     ``positions``: frame positions to score (default: the held-out frames).
     ``model``: override the integrator's ``pbr`` / ``lambertian`` model.
+    ``pattern``: the sensor's explicit ray pattern ((N, 3) directions in the
+    sensor frame) for a non-spinning sensor (see :func:`frame_rays`).
     """
     import mitsuba as mi
     from ..scene_graph import Frames
@@ -243,7 +258,7 @@ def score_scene(scene_xml, scene_lidar_xml=None, positions=None, model: str | No
         sensor = _pose(scene, frames, k)
         near = float(getattr(sensor, "near_clip", 0.5)) if sensor is not None else 0.5
         far = float(getattr(sensor, "far_clip", 120.0)) if sensor is not None else 120.0
-        fr = frame_rays(rec, sensor, table)
+        fr = frame_rays(rec, sensor, table, pattern)
         m_int, m_rng, m_hit = render_rays(scene, integrator, fr.origin, fr.directions, fr.beam,
                                           near, far)
         b_rng = caster.cast(fr.origin, fr.directions, near, min(far, 80.0))
@@ -253,7 +268,7 @@ def score_scene(scene_xml, scene_lidar_xml=None, positions=None, model: str | No
                        ("b_ret", b_rng > 0), ("b_range", b_rng), ("b_int", b_int)):
             acc[key].append(v)
         # The range-image score of the same frame.
-        if sensor is not None and rec.lidar_scan is not None:
+        if sensor is not None and rec.lidar_scan is not None and pattern is None:
             from ..io.images import read_exr
             from ..plugins.lidar_return import LidarReturnIntegrator
             import drjit as dr
