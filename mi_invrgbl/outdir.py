@@ -375,6 +375,35 @@ def prepare(target, command: str, inputs=(), overwrite: bool = False, resume: bo
     return out
 
 
+def add_overwrite_option(parser) -> None:
+    """``--overwrite`` for a command's argument parser (one wording everywhere)."""
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace this command's earlier results in the output folder "
+                             "(only the files it wrote; anything else there is kept)")
+
+
+def staged(target, command: str, inputs=(), overwrite: bool = False, **kwargs):
+    """Context manager around :func:`prepare`: yields the :class:`OutputFolder`,
+    commits it when the block finishes, discards it when the block raises."""
+    return _Staged(prepare(target, command, inputs, overwrite, **kwargs))
+
+
+class _Staged:
+    def __init__(self, out: OutputFolder):
+        self.out = out
+
+    def __enter__(self) -> OutputFolder:
+        return self.out
+
+    def __exit__(self, kind, value, tb):
+        if kind is None:
+            if not self.out.done:
+                self.out.commit()
+        else:
+            self.out.discard()
+        return False
+
+
 def check_new_folder(target, command: str, inputs=(), what: str = "the output folder") -> Path:
     """Check a folder a command creates itself (it must not exist, or be empty)."""
     target = Path(os.path.abspath(target))

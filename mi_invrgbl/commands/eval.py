@@ -47,7 +47,7 @@ from pathlib import Path
 import drjit as dr
 import numpy as np
 
-from ..errors import UserError
+from ..errors import UserError, mitsuba_message
 from ..scene_graph import set_frame
 
 #: PSNR reported for identical images (MSE = 0).
@@ -163,7 +163,7 @@ def load_lidar_integrator(scene_lidar, model=None):
         return mi.load_string(text).integrator()
     except Exception as exc:
         raise UserError("%s: cannot load the lidar_return integrator: %s"
-                        % (scene_lidar, str(exc).strip().splitlines()[-1])) from None
+                        % (scene_lidar, mitsuba_message(exc))) from None
 
 
 def read_png(path):
@@ -640,14 +640,36 @@ def _read_json(path):
     return data if isinstance(data, dict) else None
 
 
+def _is_metrics_file(path) -> bool:
+    """Whether ``path`` is a metrics.json that ``fit`` or ``eval`` wrote (folders
+    written before output markers existed)."""
+    data = _read_json(path)
+    return data is not None and (data.get("format") == "mi-invrgbl-metrics/1"
+                                 or {"heldout_psnr", "selection", "config"} <= set(data))
+
+
 def run(args):
-    result = evaluate(args.scene, args.frames, spp=args.spp, samples=args.samples,
-                      lidar_model=args.lidar_model, baseline=not args.no_baseline,
-                      relight=not args.no_relight, baseline_max_points=args.baseline_max_points,
-                      save_renders=args.save_renders)
+    from .. import outdir
     scene_xml, _ = resolve_inputs(args.scene)
     out = args.output or str(Path(scene_xml).parent / "metrics.json")
-    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    # Checked before the renders, not after them.
+    outdir.check_file(out, "eval", inputs=[scene_xml], recognise=_is_metrics_file,
+                      what="metrics file")
+    renders = None
+    if args.save_renders:
+        renders = outdir.prepare(args.save_renders, "eval", inputs=[scene_xml],
+                                 replace_own=True, what="--save-renders folder")
+    try:
+        result = evaluate(args.scene, args.frames, spp=args.spp, samples=args.samples,
+                          lidar_model=args.lidar_model, baseline=not args.no_baseline,
+                          relight=not args.no_relight, baseline_max_points=args.baseline_max_points,
+                          save_renders=str(renders.path) if renders else None)
+    except BaseException:
+        if renders:
+            renders.discard()
+        raise
+    if renders:
+        renders.commit()
     # DIR/fit/metrics.json first holds what ``fit`` reported (selection,
     # response, times); keep it under "fit" instead of overwriting it.
     previous = _read_json(out)
@@ -656,10 +678,8 @@ def run(args):
             result["fit"] = previous
         elif "fit" in previous:
             result["fit"] = previous["fit"]
-    tmp = out + ".part"
-    with open(tmp, "w") as f:
-        json.dump(_json_clean(result), f, indent=1)
-    os.replace(tmp, out)
+    outdir.write_file(out, json.dumps(_json_clean(result), indent=1), "eval",
+                      inputs=[scene_xml], recognise=_is_metrics_file, what="metrics file")
     print(format_table(result["frames"], result["mean"]))
     print("[eval] wrote %s" % out)
     return 0

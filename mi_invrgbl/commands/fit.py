@@ -6,15 +6,23 @@ See :mod:`mi_invrgbl.fit.runner` for the order of work and
 
 from __future__ import annotations
 
+import os
 import time
+from pathlib import Path
 
 from ..errors import UserError
+
+#: Largest loss weight accepted: beyond it the float32 loss overflows.
+MAX_WEIGHT = 1e6
 
 
 def add_parser(sub):
     p = sub.add_parser("fit", help="fit geometry, materials, light and LiDAR response to an imported scene")
     p.add_argument("scene", help="scene.xml written by 'mi-invrgbl import'")
-    p.add_argument("-o", "--output", default="", help="output folder (default: <scene folder>/fit)")
+    p.add_argument("-o", "--output", default="", help="output folder (default: <scene folder>/fit); "
+                   "new, empty, or an earlier fit's (with --resume or --overwrite)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an earlier fit in the output folder (only the files it wrote)")
     p.add_argument("--stage1", type=int, default=150, help="stage-1 (geometry) iterations (default 150)")
     p.add_argument("--stage2", type=int, default=200, help="stage-2 (materials) iterations (default 200)")
     p.add_argument("--width", type=int, default=320, help="image width the fit works at (default 320)")
@@ -52,7 +60,8 @@ def add_parser(sub):
     p.add_argument("--max-gaussians", type=int, default=800000, help="densification cap")
     p.add_argument("--checkpoint-every", type=int, default=50)
     p.add_argument("--eval-every", type=int, default=50)
-    p.add_argument("--resume", action="store_true", help="continue from DIR/fit/checkpoints/latest.npz")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the fit in the output folder from its checkpoints/latest.npz")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(run=run)
 
@@ -64,6 +73,12 @@ def config_from_args(args):
         weights = LossWeights.parse(args.weights)
     except ValueError as exc:
         raise UserError("--weights: %s" % exc) from None
+    for name, value in weights.as_dict().items():
+        if not value <= MAX_WEIGHT:
+            raise UserError("--weights: %s=%g is too large (at most %g: the float32 loss "
+                            "would overflow)" % (name, value, MAX_WEIGHT))
+    if args.resume and args.overwrite:
+        raise UserError("--resume and --overwrite exclude each other")
     for name in ("stage1", "stage2", "width", "lidar_columns", "batch", "samples"):
         if getattr(args, name) < (0 if name.startswith("stage") else 1):
             raise UserError("--%s must be positive" % name.replace("_", "-"))
@@ -85,13 +100,53 @@ def config_from_args(args):
                      learn_sun_direction=args.learn_sun_direction)
 
 
+def output_folder(args) -> str:
+    """The fit's output folder: ``-o`` or ``fit/`` beside the scene."""
+    return args.output or os.path.join(os.path.dirname(os.path.abspath(args.scene)), "fit")
+
+
+def _carry_frames(scene, staging: Path, target: Path) -> None:
+    """A fit folder outside its import folder gets a copy of ``frames.json``
+    (paths rewritten relative to it), so that ``eval`` finds the frames and
+    their observations from the fit folder alone."""
+    from ..scene_graph import Frames
+    if (target / "frames.json").is_file() or (target.parent / "frames.json").is_file():
+        return
+    try:
+        frames = Frames.load(scene)
+    except UserError:
+        return
+    if frames.root != target.parent:
+        frames.save(staging / "frames.json")
+
+
 def run(args):
+    from .. import outdir
     from ..fit.runner import run_fit
+    config = config_from_args(args)
+    if not os.path.isfile(args.scene):
+        raise UserError("%s: scene file not found" % args.scene)
+    # Decided before any work: a fit must not run an hour and then fail to write.
+    out = outdir.prepare(output_folder(args), "fit", inputs=[args.scene],
+                         overwrite=args.overwrite, resume=args.resume)
+    if args.resume and not (out.path / "checkpoints" / "latest.npz").is_file():
+        out.discard()
+        raise UserError("%s: no checkpoint to resume from"
+                        % (out.target / "checkpoints" / "latest.npz"))
+    config.output = str(out.path)
     t0 = time.time()
-    metrics = run_fit(args.scene, config_from_args(args))
+    try:
+        metrics = run_fit(args.scene, config)
+        _carry_frames(args.scene, out.path, out.target)
+    except BaseException:
+        out.discard()
+        raise
+    out.commit(complete=not metrics["interrupted"])
     print("[fit] %s in %.0f s; held-out PSNR %s dB, LiDAR intensity RMSE %s; peak memory %.0f MB"
           % ("interrupted" if metrics["interrupted"] else "done", time.time() - t0,
              "%.2f" % metrics["heldout_psnr"] if metrics["heldout_psnr"] is not None else "n/a",
              "%.4f" % metrics["heldout_intensity_rmse"] if metrics["heldout_intensity_rmse"] is not None
              else "n/a", metrics["peak_rss_mb"]))
+    print("[fit] results in %s%s" % (out.target, "" if not metrics["interrupted"] else
+                                     " (continue with --resume)"))
     return 130 if metrics["interrupted"] else 0
