@@ -227,6 +227,10 @@ class OutputFolder:
     def __repr__(self):
         return "OutputFolder(%s -> %s)" % (self.path, self.target)
 
+    def log(self, text: str) -> None:
+        """Print a progress line, naming the final folder rather than the temporary one."""
+        print(str(text).replace(str(self.path), str(self.target)))
+
     def discard(self) -> None:
         """Remove the temporary folder (only this object created it)."""
         if not self.done:

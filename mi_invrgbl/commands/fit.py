@@ -136,7 +136,7 @@ def run(args):
     config.output = str(out.path)
     t0 = time.time()
     try:
-        metrics = run_fit(args.scene, config)
+        metrics = run_fit(args.scene, config, log=out.log)
         _carry_frames(args.scene, out.path, out.target)
     except BaseException:
         out.discard()

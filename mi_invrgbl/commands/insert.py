@@ -59,7 +59,7 @@ def run(args):
     with outdir.staged(target, "insert", inputs=[args.scene, _object_file(args.object),
                                                  args.track], overwrite=args.overwrite) as out:
         out_dir = str(out.path)
-        scene, _ = sequence.write_and_load(edited, doc, out_dir, "insert",
+        scene, _ = sequence.write_and_load(edited, doc, out_dir, "insert", log=out.log,
                                            defines=sequence.defines(args))
         shape_id = obj.shape.get("id")
         bounds = insert.scene_bounds_without(scene, shape_id)
@@ -68,7 +68,7 @@ def run(args):
         frames = FrameSet(args.scene, scene, args.frames)
         hooks = [insert.TrackHook(shape_id, track, track[0])] if args.track else []
         result = sequence.render_frames(scene, frames, out_dir, args.spp, hooks=hooks,
-                                        exposure=args.exposure, tag="insert")
+                                        exposure=args.exposure, tag="insert", log=out.log)
     print("[insert] %d frame(s) in %.1f s; results in %s"
           % (len(frames.frames), result["seconds"], target))
     return 0

@@ -94,12 +94,12 @@ def run(args):
     with outdir.staged(target, "lidar", inputs=[args.scene, args.trajectory,
                                                 args.sensor if os.path.isfile(args.sensor) else None],
                        overwrite=args.overwrite) as out:
-        _simulate(args, doc, str(out.path), poses, own_frames)
+        _simulate(args, doc, str(out.path), poses, own_frames, out.log)
     print("[lidar] results in %s" % target)
     return 0
 
 
-def _simulate(args, doc, out_dir, poses, own_frames):
+def _simulate(args, doc, out_dir, poses, own_frames, log=print):
     import mitsuba as mi
     from ..io.images import write_exr, write_false_colour_png
     from ..io.velodyne import write_velodyne
@@ -110,7 +110,7 @@ def _simulate(args, doc, out_dir, poses, own_frames):
     print("[lidar] sensor %s: %d beams x %d azimuth steps; %d pose(s); intensity scale %g"
           % (spec.name, spec.height, spec.width, len(poses), scale))
     edited, ident = lidar_sim.lidar_doc(doc, spec, poses[0][1], args.lidar_model)
-    scene, _ = sequence.write_and_load(edited, doc, out_dir, "lidar",
+    scene, _ = sequence.write_and_load(edited, doc, out_dir, "lidar", log=log,
                                        defines=sequence.defines(args))
     sensor = next(s for s in scene.sensors() if s.id() == ident)
     bounds = scene_bounds(scene)

@@ -102,12 +102,12 @@ def run(args):
     target = sequence.output_dir(args, "night")
     with outdir.staged(target, "night", inputs=[args.scene], overwrite=args.overwrite) as out:
         out_dir = str(out.path)
-        scene, _ = sequence.write_and_load(edited, doc, out_dir, "night",
+        scene, _ = sequence.write_and_load(edited, doc, out_dir, "night", log=out.log,
                                            defines=sequence.defines(args))
         frames = FrameSet(args.scene, scene, args.frames)
         hook = night.HeadlightHook(head_ids, frames)
         result = sequence.render_frames(scene, frames, out_dir, args.spp, hooks=[hook],
-                                        exposure=args.exposure, tag="night")
+                                        exposure=args.exposure, tag="night", log=out.log)
     print("[night] %d frame(s) in %.1f s; results in %s"
           % (len(frames.frames), result["seconds"], target))
     return 0

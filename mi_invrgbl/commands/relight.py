@@ -83,11 +83,11 @@ def run(args):
     with outdir.staged(target, "relight", inputs=[args.scene, light_source(args.light_from)],
                        overwrite=args.overwrite) as out:
         out_dir = str(out.path)
-        scene, _ = sequence.write_and_load(edited, doc, out_dir, "relight",
+        scene, _ = sequence.write_and_load(edited, doc, out_dir, "relight", log=out.log,
                                            defines=sequence.defines(args))
         frames = FrameSet(args.scene, scene, args.frames)
         result = sequence.render_frames(scene, frames, out_dir, args.spp, exposure=args.exposure,
-                                        tag="relight")
+                                        tag="relight", log=out.log)
     print("[relight] %d frame(s) in %.1f s; results in %s"
           % (len(frames.frames), result["seconds"], target))
     return 0
