@@ -1,4 +1,8 @@
-"""Shared pytest set-up: every test runs in the LLVM RGB autodiff variant."""
+"""Shared pytest set-up: every test runs in one Mitsuba variant.
+
+``pytest --variant cuda_ad_rgb`` (or ``MI_INVRGBL_VARIANT=cuda_ad_rgb``) runs the
+suite on a GPU; the default is ``llvm_ad_rgb``.
+"""
 
 import os
 import pathlib
@@ -6,8 +10,28 @@ import pathlib
 import pytest
 import mitsuba as mi
 
-mi.set_variant("llvm_ad_rgb")
-import mi_invrgbl  # noqa: E402,F401  (registers the plugins)
+import variant_choice
+
+
+def pytest_addoption(parser):
+    parser.addoption("--variant", default=None,
+                     help="Mitsuba variant to test (default: $MI_INVRGBL_VARIANT or llvm_ad_rgb)")
+
+
+def pytest_configure(config):
+    chosen = config.getoption("--variant")
+    if chosen:
+        os.environ["MI_INVRGBL_VARIANT"] = chosen
+    try:
+        variant_choice.use()
+    except SystemExit as exc:  # e.g. cuda_ad_rgb on a machine without a GPU
+        pytest.exit(str(exc), returncode=4)
+    import mi_invrgbl  # noqa: F401  (registers the plugins for the chosen variant)
+
+
+
+def pytest_report_header(config):
+    return "mitsuba variant: %s" % variant_choice.variant()
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared"
@@ -15,8 +39,7 @@ SHARED = ROOT.parent / "shared"
 
 @pytest.fixture
 def variant():
-    mi.set_variant("llvm_ad_rgb")
-    return "llvm_ad_rgb"
+    return variant_choice.use()
 
 
 @pytest.fixture(scope="session")

@@ -14,6 +14,7 @@ import os
 
 import numpy as np
 import mitsuba as mi
+import variant_choice
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PLY = os.path.join(ROOT, "scenes", "street_assets", "street_gaussians.ply")
@@ -126,6 +127,6 @@ def build(out_dir, n_frames=5, width=96, height=32, columns=256, sun=True, truth
 
 if __name__ == "__main__":
     import sys
-    mi.set_variant("llvm_ad_rgb")
+    variant_choice.use()
     import mi_invrgbl  # noqa: F401
     print(build(sys.argv[1]))

@@ -32,6 +32,7 @@ import drjit as dr
 
 from mi_invrgbl.cli import main
 from mi_invrgbl.synthetic.writers import read_exr
+import variant_choice
 
 POSE_PX = 1.5
 CHROMA_TOL = 0.02
@@ -78,7 +79,7 @@ IN_SUN, IN_SHADOW = (13.0, 0.0, 0.0), (4.0, 0.0, 0.0)
 
 @pytest.fixture(scope="module")
 def files(tmp_path_factory):
-    mi.set_variant("llvm_ad_rgb")
+    variant_choice.use()
     import mi_invrgbl  # noqa: F401
     import trimesh
     root = tmp_path_factory.mktemp("insert")
@@ -248,13 +249,17 @@ def test_colour_follows_the_target_light(files, tmp_path):
     assert np.abs(chroma["warm"] - chroma["blue"]).max() > 0.2
 
 
-def test_track_moves_the_object_per_frame(files, tmp_path):
+@pytest.mark.parametrize("kind", ["mesh", "gaussians"])
+def test_track_moves_the_object_per_frame(files, tmp_path, kind):
     track = tmp_path / "track.json"
     poses = [[10.0, -1.0, 0.0, 0.0], [12.0, 2.0, 0.0, 90.0]]
     track.write_text(json.dumps(poses))
     out = tmp_path / "track"
-    run(["insert", str(files / "path.xml"), "--object", str(files / "sphere.obj"), "--track", str(track),
-         "-o", str(out), "--spp", "2"])
+    # The sphere's centre is RADIUS above its bottom centre, the fitted box's 0.5 m.
+    obj, lift = ((str(files / "sphere.obj"), RADIUS) if kind == "mesh" else
+                 (str(files / "fit" / "scene.xml") + ":object_7", 0.5))
+    run(["insert", str(files / "path.xml"), "--object", obj, "--track", str(track),
+         "-o", str(out), "--spp", "2", "--samples", "2"])
     assert (out / "frame_0000.png").is_file() and (out / "frame_0001.png").is_file()
     # Frame 1 (camera cam_b) must show the sphere at the second pose.
     scene = mi.load_file(str(out / "scene.xml"))
@@ -272,7 +277,7 @@ def test_track_moves_the_object_per_frame(files, tmp_path):
         hit = np.array(dr.reinterpret_array(mi.UInt32, si.shape)).ravel() == \
             int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(target))[0])
         rows, cols = np.nonzero(hit.reshape(H, W))
-        u, v = project(sensor, np.array(poses[frame.index][:3]) + [0, 0, RADIUS])
+        u, v = project(sensor, np.array(poses[frame.index][:3]) + [0, 0, lift])
         assert math.hypot(cols.mean() + 0.5 - u, rows.mean() + 0.5 - v) < POSE_PX
 
 

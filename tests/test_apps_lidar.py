@@ -29,6 +29,7 @@ from mi_invrgbl.cli import main
 from mi_invrgbl.io.velodyne import read_velodyne
 from mi_invrgbl.synthetic import StreetConfig, generate_street
 from mi_invrgbl.synthetic.writers import read_exr
+import variant_choice
 
 CFG = dict(seed=4, frames=2, width=32, height=16, spp=1, azimuth_steps=512, night=False)
 INTENSITY_RMSE = 0.002
@@ -41,7 +42,7 @@ STREET_XML = __import__("os").path.join(__import__("os").path.dirname(__import__
 
 @pytest.fixture(scope="module")
 def street(tmp_path_factory):
-    mi.set_variant("llvm_ad_rgb")
+    variant_choice.use()
     import mi_invrgbl  # noqa: F401
     out = tmp_path_factory.mktemp("lidar") / "street"
     generate_street(str(out), StreetConfig(**CFG), log=lambda *a: None)
@@ -78,7 +79,7 @@ def test_simulation_matches_the_generators_scans(street, simulated):
 
 
 def test_kitti_bin_points_lie_on_the_generators_points(street, simulated):
-    from mi_invrgbl.fit.baselines import NearestNeighbourIntensity
+    from mi_invrgbl.eval.baselines import NearestNeighbourIntensity
     points, intensity = read_velodyne(str(simulated / "frame_0000.bin"))
     sim = read_exr(str(simulated / "frame_0000.exr"))
     assert len(points) == int(np.sum(sim["hit"] > 0))

@@ -25,6 +25,7 @@ import mitsuba as mi
 from mi_invrgbl.cli import main
 from mi_invrgbl.synthetic import StreetConfig, generate_street
 from mi_invrgbl.synthetic.writers import read_exr
+import variant_choice
 
 CFG = dict(seed=2, frames=1, width=128, height=48, spp=16, azimuth_steps=256, night=False)
 #: Far surfaces (outside every cone, or beyond FAR_M of every light) vs lit ones
@@ -36,7 +37,7 @@ NEAR_M = 8.0
 
 @pytest.fixture(scope="module")
 def street(tmp_path_factory):
-    mi.set_variant("llvm_ad_rgb")
+    variant_choice.use()
     import mi_invrgbl  # noqa: F401
     out = tmp_path_factory.mktemp("night") / "street"
     generate_street(str(out), StreetConfig(**CFG), log=lambda *a: None)
@@ -60,7 +61,7 @@ def positions(scene_xml):
 
 def spots(scene_xml):
     """(position, axis, cutoff in degrees) of every spot light of a scene."""
-    from mi_invrgbl.apps.xml_edit import SceneDoc, child_param
+    from mi_invrgbl.scene.xml import SceneDoc, child_param
     doc = SceneDoc.load(str(scene_xml))
     scene = mi.load_file(str(scene_xml))
     out = []

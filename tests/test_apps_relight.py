@@ -23,9 +23,10 @@ import mitsuba as mi
 
 from mi_invrgbl.cli import main
 from mi_invrgbl.errors import UserError
-from mi_invrgbl.metrics import psnr
+from mi_invrgbl.eval.metrics import psnr
 from mi_invrgbl.synthetic import StreetConfig, generate_street
 from mi_invrgbl.synthetic.writers import read_exr
+import variant_choice
 
 CFG = dict(seed=5, frames=2, width=128, height=48, spp=16, azimuth_steps=256, night=False)
 #: Relit frames must come within this of the noise floor (dB, sRGB PSNR, peak 1).
@@ -38,7 +39,7 @@ STREET_XML = os.path.join(ROOT, "scenes", "street.xml")
 
 @pytest.fixture(scope="module")
 def street(tmp_path_factory):
-    mi.set_variant("llvm_ad_rgb")
+    variant_choice.use()
     import mi_invrgbl  # noqa: F401  (registers the plugins)
     out = tmp_path_factory.mktemp("relight") / "street"
     generate_street(str(out), StreetConfig(**CFG), log=lambda *a: None)
@@ -120,7 +121,7 @@ def test_invrgbl_scene_traces_the_new_suns_shadows(tmp_path):
     args = ["relight", STREET_XML, "-o", str(out), "--spp", "1", "--samples", "4",
             "-D", "width=48", "-D", "height=16", "--sun-elevation", "30", "--sun-azimuth", "-90"]
     assert main(args) == 0
-    from mi_invrgbl.apps.xml_edit import SceneDoc
+    from mi_invrgbl.scene.xml import SceneDoc
     doc = SceneDoc.load(str(out / "scene.xml"))
     integrator = doc.integrator()
     assert integrator.get("type") == "invrgbl"
@@ -130,7 +131,7 @@ def test_invrgbl_scene_traces_the_new_suns_shadows(tmp_path):
 
 def test_lighting_read_back_from_scenes(street):
     from mi_invrgbl.apps.lighting_edit import lighting_of_doc, read_lighting
-    from mi_invrgbl.apps.xml_edit import SceneDoc
+    from mi_invrgbl.scene.xml import SceneDoc
     from mi_invrgbl.physics.sh import Y0
     stock = lighting_of_doc(SceneDoc.load(str(street / "gt" / "scene_time_b.xml")))
     assert stock.sh.shape == (1, 3)
@@ -184,7 +185,7 @@ def test_time_sets_the_sun(street, tmp_path, capsys):
     assert "elevation" in printed and "compass azimuth" in printed
     from mi_invrgbl.apps.solar import solar_position, world_azimuth
     from mi_invrgbl.apps.lighting_edit import direction_from_angles, lighting_of_doc
-    from mi_invrgbl.apps.xml_edit import SceneDoc
+    from mi_invrgbl.scene.xml import SceneDoc
     e, a = solar_position(dt.datetime(2024, 6, 21, 16, 0, tzinfo=dt.timezone(dt.timedelta(hours=2))),
                           49.01, 8.40)
     lighting = lighting_of_doc(SceneDoc.load(str(out / "scene.xml")))

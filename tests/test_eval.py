@@ -19,7 +19,7 @@ import mitsuba as mi
 
 from mi_invrgbl.physics.gaussian_ply import GaussianCloud, write_ply
 from mi_invrgbl.io.images import write_exr, write_png
-from mi_invrgbl.scene_graph import Frames, CAMERA_FLIP
+from mi_invrgbl.scene.frames import Frames, CAMERA_FLIP
 
 W, H = 32, 24
 FX = 20.0
@@ -253,7 +253,7 @@ def test_eval_perfect_on_own_renders(fit_dir, capsys):
 
 def test_eval_frames_and_default_response(fit_dir, tmp_path):
     import shutil
-    from mi_invrgbl.commands.eval import evaluate
+    from mi_invrgbl.eval.scoring import evaluate
     # a copy without scene_lidar.xml: the default response mismatches the observations
     copy = tmp_path / "fit"
     shutil.copytree(fit_dir, copy, ignore=shutil.ignore_patterns("scene_lidar.xml", "gt"))
@@ -270,7 +270,7 @@ def test_eval_frames_and_default_response(fit_dir, tmp_path):
 
 def test_eval_errors(fit_dir, tmp_path, capsys):
     from mi_invrgbl.cli import main
-    from mi_invrgbl.commands.eval import select_frames
+    from mi_invrgbl.eval.inputs import select_frames
     assert main(["eval", str(tmp_path / "nope")]) == 2
     assert "no such fit folder" in capsys.readouterr().err
     assert main(["eval", str(tmp_path)]) == 2
@@ -292,7 +292,7 @@ def test_eval_errors(fit_dir, tmp_path, capsys):
 
 
 def test_nn_baseline():
-    from mi_invrgbl.fit.baselines import NearestNeighbourIntensity, load_points
+    from mi_invrgbl.eval.baselines import NearestNeighbourIntensity, load_points
     rng = np.random.default_rng(0)
     pts = np.column_stack([rng.uniform(-20, 20, (5000, 3)) + [500, -300, 0],
                            rng.uniform(0, 1, 5000)])
@@ -319,7 +319,7 @@ def test_nn_baseline():
 @pytest.mark.slow
 def test_nn_baseline_million_points_fast():
     import time
-    from mi_invrgbl.fit.baselines import NearestNeighbourIntensity
+    from mi_invrgbl.eval.baselines import NearestNeighbourIntensity
     rng = np.random.default_rng(1)
     pts = np.column_stack([rng.uniform(0, 80, (1_000_000, 3)), rng.uniform(0, 1, 1_000_000)])
     t = time.perf_counter()
@@ -339,3 +339,28 @@ def test_eval_keeps_what_fit_wrote(fit_dir):
     assert "mean" in res
     assert main(["eval", str(fit_dir), "-o", str(out), "--no-baseline", "--no-relight"]) == 0
     assert json.loads(out.read_text())["fit"]["wall_s"] == 12.5          # a second eval keeps it
+
+
+def test_eval_reads_scan_channels_by_name(fit_dir, tmp_path, capsys):
+    import shutil
+    from mi_invrgbl.cli import main
+    from mi_invrgbl.eval.scoring import evaluate
+    from mi_invrgbl.io.images import read_exr
+    copy = tmp_path / "fit"
+    shutil.copytree(fit_dir, copy, ignore=shutil.ignore_patterns("gt"))
+    scan_path = copy / "observations" / "lidar_0002.exr"
+    arr, names = read_exr(str(scan_path))
+    scan = {n: arr[..., k] for k, n in enumerate(names)}
+    # The same scan with its channels in another order: scored the same.
+    order = ["range", "hit", "intensity"]
+    write_exr(str(scan_path), np.stack([scan[n] for n in order], -1), order)
+    res = evaluate(str(copy), "held-out", baseline=False, relight=False, log=lambda *a: None)
+    assert res["mean"]["lidar_intensity_rmse"] < 1e-5 and res["mean"]["range_error"] < 1e-5
+    # Channels named otherwise are refused, never guessed by position.
+    write_exr(str(scan_path), np.stack([scan[n] for n in ("intensity", "range", "hit")], -1),
+              ["I", "R", "H"])
+    assert main(["eval", str(copy), "--no-baseline", "--no-relight", "-o", str(tmp_path / "m.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "lidar_0002.exr" in err[0] and "no channel 'intensity', 'range', 'hit'" \
+        in err[0] and all(c in err[0].split("(it has ")[1] for c in "HIR"), err
+    assert not (tmp_path / "m.json").exists()

@@ -10,7 +10,7 @@ import pytest
 import drjit as dr
 import mitsuba as mi
 
-from mi_invrgbl.plugins import gaussian_ply as gp
+from mi_invrgbl.physics import gaussian_ply as gp
 
 SH_C0 = 0.28209479177387814
 

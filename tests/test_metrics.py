@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from mi_invrgbl import metrics as M
+from mi_invrgbl.eval import metrics as M
 
 RNG = np.random.default_rng(3)
 

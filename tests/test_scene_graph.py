@@ -8,7 +8,8 @@ import mitsuba as mi
 
 from mi_invrgbl.errors import UserError
 from mi_invrgbl.physics.gaussian_ply import GaussianCloud, write_ply, quaternion_to_matrix
-from mi_invrgbl.scene_graph import Frames, set_frame, CAMERA_FLIP, FORMAT
+from mi_invrgbl.scene.frames import Frames, CAMERA_FLIP, FORMAT
+from mi_invrgbl.scene.posing import set_frame
 
 
 def _pose(angle, t):
@@ -138,3 +139,75 @@ def test_set_frame_moves_objects(tiny_scene):
         np.testing.assert_allclose(R, R_true, atol=1e-4)
     with pytest.raises(IndexError):
         set_frame(scene, frames, 3)
+
+
+def test_frames_refuse_non_finite_numbers(tiny_scene, capsys):
+    root, _, _ = tiny_scene
+    frames = Frames.load(root)
+    frames.frames[1].time = float("nan")
+    out = root / "copy"
+    with pytest.raises(UserError, match=r"frames.json: refusing to write a non-finite number "
+                                        r"\(frames.json.frames\[1\].time = nan\)"):
+        frames.save(out)
+    assert not (out / "frames.json").exists()
+    # Python's json reads the non-standard NaN; the loader refuses it, naming the file.
+    text = (root / "frames.json").read_text().replace('"time": 0.1', '"time": NaN', 1)
+    (root / "frames.json").write_text(text)
+    with pytest.raises(UserError, match="frames.json: not valid JSON .*NaN"):
+        Frames.load(root)
+    data = json.loads((root / "frames.json").read_text().replace("NaN", "0.1"))
+    data["camera"]["fx"] = 1e999
+    (root / "frames.json").write_text(json.dumps(data))
+    with pytest.raises(UserError, match="frames.json"):
+        Frames.load(root)
+    data["camera"]["fx"] = 4.0
+    data["frames"][2]["camera_to_world"][0][3] = None
+    (root / "frames.json").write_text(json.dumps(data))
+    with pytest.raises(UserError, match=r"frames.json, frames\[2\].camera_to_world"):
+        Frames.load(root)
+
+
+def test_place_moves_every_kind_of_node_and_rays_see_it(tiny_scene):
+    """Gaussians, a mesh, a spot light and a sensor, moved by the one function;
+    rays traced after the move hit the objects where they now are."""
+    import drjit as dr
+    from mi_invrgbl.scene.posing import place, reset_tracking, to_world_of
+    root, cloud, poses = tiny_scene
+    text = (root / "scene.xml").read_text().replace("</scene>", (
+        '<shape type="cube" id="box"><transform name="to_world"><translate x="0" y="5"/>'
+        '</transform></shape><emitter type="spot" id="lamp"><transform name="to_world">'
+        '<translate z="4"/></transform></emitter></scene>'))
+    (root / "moved.xml").write_text(text)
+    scene = mi.load_file(str(root / "moved.xml"))
+    target = _pose(0.3, [-20, 7, 1])
+    box_to = _pose(1.0, [30, -4, 2])
+    cam_to = _pose(0.2, [1, 2, 3])
+    place(scene, {"object_7": target, "box": box_to, "lamp": box_to, "camera_0001": cam_to},
+          loaded={"object_7": poses[0], "box": _pose(0.0, [0, 5, 0]),
+                  "lamp": _pose(0.0, [0, 5, 0])})    # the lamp rides on the box
+    data, _ = _shape_state(scene, "object_7")
+    np.testing.assert_allclose(data[:, :3], cloud.centers @ target[:3, :3].T + target[:3, 3],
+                               atol=1e-4)
+    p = mi.traverse(scene)
+    box = np.array(p["box.vertex_positions"], np.float64).reshape(-1, 3)
+    np.testing.assert_allclose(box.mean(axis=0), box_to[:3, 3], atol=1e-5)
+    np.testing.assert_allclose(to_world_of(p, "lamp"), box_to @ _pose(0.0, [0, -5, 4]), atol=1e-5)
+    # Without a loaded pose a sensor's pose is its to_world.
+    np.testing.assert_allclose(to_world_of(p, "camera_0001"), cam_to, atol=1e-5)
+
+    def hit_count(point):
+        # Rays from high above, straight down onto ``point``: the scene's
+        # acceleration structure must know the moved geometry.
+        n = 64
+        o = np.tile(np.asarray(point, np.float32) + [0, 0, 50], (n, 1))
+        o[:, :2] += np.random.default_rng(0).uniform(-0.2, 0.2, (n, 2)).astype(np.float32)
+        ray = mi.Ray3f(mi.Point3f(*o.T), mi.Vector3f(0, 0, -1))
+        return int(dr.count(scene.ray_intersect(ray).is_valid())[0])
+
+    assert hit_count(box_to[:3, 3]) == 64 and hit_count([0, 5, 0]) == 0
+    # A second placement composes with where the node is now (tracked per scene).
+    place(scene, {"box": _pose(0.0, [0, 5, 0])})
+    assert hit_count([0, 5, 0]) == 64 and hit_count(box_to[:3, 3]) == 0
+    reset_tracking(scene)
+    with pytest.raises(UserError, match="'nothing' cannot be moved"):
+        place(scene, {"nothing": target})

@@ -7,7 +7,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mi_invrgbl.plugins import sh as shm
+from mi_invrgbl.physics import sh as shm
 
 # A fairly busy order-3 sky (kept positive by its large constant term), as a flat
 # coefficient-major list; and the same with negative lobes that need clamping.

@@ -47,7 +47,7 @@ def test_only_the_sky_coloured_wall_against_the_sky_is_a_lookalike():
     ys, zs = np.meshgrid(np.linspace(-3.8, 3.8, 160), np.linspace(0.3, 1.7, 20))
     o = mi.Point3f(mi.Float(np.zeros(ys.size)), mi.Float(ys.ravel()), mi.Float(zs.ravel()))
     rays = mi.Ray3f(o, mi.Vector3f(dr.ones(mi.Float, ys.size), 0.0, 0.0))
-    from mi_invrgbl.plugins import hits as hitlib
+    from mi_invrgbl.physics import hits as hitlib
     ids = {s.id(): hitlib.shape_id(s) for s in scene.shapes()}
     acc = {name: np.zeros((dr.width(mi.traverse(scene)[name + ".opacities"]), 3)) for name in ids}
     with dr.suspend_grad():
@@ -88,7 +88,7 @@ def test_a_wall_too_dense_to_see_through_gives_no_evidence():
     with dr.suspend_grad():
         stats = frame_statistics(scene, rays)
     acc = {"opaque": np.zeros((dr.width(mi.traverse(scene)["opaque.opacities"]), 3))}
-    from mi_invrgbl.plugins import hits as hitlib
+    from mi_invrgbl.physics import hits as hitlib
     accumulate(acc, {"opaque": hitlib.shape_id(scene.shapes()[0])}, stats)
     assert (acc["opaque"][:, 0] > 0.05).sum() > 5
     assert not lookalike_masks(acc)["opaque"].any()
@@ -105,7 +105,7 @@ def test_sky_coloured_wall_in_front_of_a_mesh_is_kept():
     ys, zs = np.meshgrid(np.linspace(-0.8, 0.8, 32), np.linspace(0.3, 1.7, 8))
     rays = mi.Ray3f(mi.Point3f(mi.Float(np.zeros(ys.size)), mi.Float(ys.ravel()), mi.Float(zs.ravel())),
                     mi.Vector3f(dr.ones(mi.Float, ys.size), 0.0, 0.0))
-    from mi_invrgbl.plugins import hits as hitlib
+    from mi_invrgbl.physics import hits as hitlib
     front = [s for s in scene.shapes() if s.id() == "front"][0]
     with dr.suspend_grad():
         stats = frame_statistics(scene, rays)

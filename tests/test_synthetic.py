@@ -23,6 +23,7 @@ import drjit as dr
 from mi_invrgbl.errors import UserError
 from mi_invrgbl.synthetic import StreetConfig, generate_street
 from mi_invrgbl.synthetic import labels as labels_mod, render, writers
+import variant_choice
 
 TINY = dict(seed=3, frames=4, width=64, height=24, azimuth_steps=256, spp=4)
 FRAMES = TINY["frames"]
@@ -30,7 +31,7 @@ FRAMES = TINY["frames"]
 
 @pytest.fixture(scope="module")
 def street(tmp_path_factory):
-    mi.set_variant("llvm_ad_rgb")
+    variant_choice.use()
     out = tmp_path_factory.mktemp("street") / "out"
     generate_street(str(out), StreetConfig(**TINY), log=lambda *a: None)
     return out

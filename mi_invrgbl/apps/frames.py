@@ -6,10 +6,11 @@ original XML:
 ``frames.json`` (an imported scene, or its fit in ``DIR/fit/``, which uses
 ``DIR/frames.json``; see ``docs/scene_format.md``)
     Frame ``i`` is rendered by the sensor ``camera_NNNN``; dynamic objects are
-    placed with :func:`mi_invrgbl.scene_graph.set_frame`.
+    placed with :func:`mi_invrgbl.scene.posing.set_frame`.
 ``trajectory.json`` (the synthetic street's ground truth, ``gt/scene_*.xml``)
     The XML holds frame 0; frame ``i`` moves its sensor to the recorded camera
-    pose and the moving car (and its headlights at night) to theirs.
+    pose and the moving car (and its headlights at night) to theirs, with
+    :func:`mi_invrgbl.scene.posing.place`.
 neither (any other scene)
     Every camera sensor (not ``lidar``) is one frame, in file order.
 
@@ -29,6 +30,9 @@ import os
 import numpy as np
 
 from ..errors import UserError
+from ..scene.frames import CAMERA_FLIP, Frames
+from ..scene.loading import is_lidar
+from ..scene.posing import place, set_frame
 
 
 @dataclasses.dataclass
@@ -40,10 +44,6 @@ class Frame:
     @property
     def name(self) -> str:
         return "frame_%04d" % self.index
-
-
-def is_lidar(sensor) -> bool:
-    return type(sensor).__name__ == "LidarSensor" or sensor.class_name() == "LidarSensor"
 
 
 #: Written beside an edited scene: {"scene": the original scene it was made from}.
@@ -76,7 +76,6 @@ def write_origin(out_dir: str, scene_path: str) -> None:
 
 def find_frames_json(scene_path: str) -> str | None:
     """``frames.json`` of a scene (beside it, or one folder up for ``DIR/fit/``), or None."""
-    from ..scene_graph import Frames
     try:
         return str(Frames.find(origin_scene(scene_path)))
     except UserError:
@@ -114,8 +113,6 @@ class FrameSet:
         sensors = list(scene.sensors())
         ids = [s.id() for s in sensors]
         self._params = None
-        self._poser = None
-        self._scene_graph = None
         self.all = []
         if self.frames_json is not None:
             self.kind = "frames.json"
@@ -133,42 +130,47 @@ class FrameSet:
 
     # ------------------------------------------------------------- reading
     def _read_frames_json(self, ids):
-        try:
-            with open(self.frames_json) as f:
-                self.info = json.load(f)
-        except (OSError, ValueError) as exc:
-            raise UserError("%s: cannot read (%s)" % (self.frames_json, exc)) from None
-        self.all = []
-        for entry in self.info.get("frames", []):
-            cam = entry.get("camera")
-            if cam in ids:
-                self.all.append(Frame(int(entry["index"]), cam, ids.index(cam)))
-        self._entries = {int(e["index"]): e for e in self.info.get("frames", [])}
+        self.records = Frames.load(self.frames_json)
+        self._positions = {r.index: k for k, r in enumerate(self.records)}
+        self.all = [Frame(r.index, r.camera, ids.index(r.camera))
+                    for r in self.records if r.camera in ids]
 
     def _read_trajectory(self, ids):
-        with open(self.trajectory_json) as f:
-            self.info = json.load(f)
-        from ..synthetic.trajectory import KITTI_FROM_MITSUBA
-        self._cams = [np.asarray(m) @ KITTI_FROM_MITSUBA for m in self.info["world_from_cam"]]
-        self._cars = np.asarray(self.info.get("world_from_moving_car", []), np.float64)
+        try:
+            with open(self.trajectory_json) as f:
+                self.info = json.load(f)
+            self._cams = [np.asarray(m, np.float64) @ CAMERA_FLIP
+                          for m in self.info["world_from_cam"]]
+            self._cars = np.asarray(self.info.get("world_from_moving_car", []), np.float64)
+        except (OSError, ValueError, KeyError) as exc:
+            raise UserError("%s: cannot read (%s)" % (self.trajectory_json, exc)) from None
+        self._headlights = []
+        if os.path.isfile(self.lights_json):
+            try:
+                with open(self.lights_json) as f:
+                    lights = json.load(f)
+            except (OSError, ValueError) as exc:
+                raise UserError("%s: cannot read (%s)" % (self.lights_json, exc)) from None
+            count = len(lights.get("night", {}).get("headlights", []))
+            self._headlights = ["headlight_%d" % k for k in range(count)]
         self.all = [Frame(i, "sensor", ids.index("sensor")) for i in range(len(self._cams))]
 
     # ------------------------------------------------------------- posing
     def apply(self, scene, frame: Frame):
         """Put ``scene`` into the state of ``frame``; returns the sensor that renders it."""
-        import mitsuba as mi
         sensor = scene.sensors()[frame.sensor_pos]
         if self.kind == "synthetic":
-            if self._poser is None:
-                self._poser = self._synthetic_poser(scene)
-            if self._poser is not None:
-                self._poser.set_frame(frame.index, self._cams[frame.index])
-            else:
-                params = self._parameters(scene)
-                params["sensor.to_world"] = mi.Transform4f(mi.ScalarMatrix4f(self._cams[frame.index]))
-                params.update()
-        elif self.kind == "frames.json" and self._has_objects():
-            self._set_objects(scene, frame.index)
+            params = self._parameters(scene)
+            poses = {"sensor": self._cams[frame.index]}
+            loaded = {}
+            if len(self._cars) and "moving_car.vertex_positions" in params:
+                # The car and its headlights were loaded at the car's frame-0 pose.
+                for name in ["moving_car"] + [h for h in self._headlights
+                                              if h + ".to_world" in params]:
+                    poses[name], loaded[name] = self._cars[frame.index], self._cars[0]
+            place(scene, poses, loaded, params)
+        elif self.kind == "frames.json" and self.records.objects:
+            set_frame(scene, self.records, self._positions[frame.index])
         return sensor
 
     def _parameters(self, scene):
@@ -176,26 +178,6 @@ class FrameSet:
         if self._params is None:
             self._params = mi.traverse(scene)
         return self._params
-
-    def _synthetic_poser(self, scene):
-        from ..synthetic.render import FramePoser
-        if "moving_car.vertex_positions" not in self._parameters(scene) or not len(self._cars):
-            return None
-        headlights = []
-        if os.path.isfile(self.lights_json):
-            with open(self.lights_json) as f:
-                headlights = json.load(f).get("night", {}).get("headlights", [])
-        return FramePoser(scene, self._cars, headlights)
-
-    def _has_objects(self):
-        return any(e.get("objects") for e in self._entries.values())
-
-    def _set_objects(self, scene, index):
-        from .. import scene_graph
-        if self._scene_graph is None:
-            self._scene_graph = scene_graph.Frames.load(self.frames_json)
-            self._positions = {r.index: k for k, r in enumerate(self._scene_graph)}
-        scene_graph.set_frame(scene, self._scene_graph, self._positions[index])
 
     # ------------------------------------------------------------ queries
     def camera_to_world(self, scene, frame: Frame) -> np.ndarray:
@@ -208,12 +190,8 @@ class FrameSet:
     def lidar_poses(self, scene) -> list[tuple[int, np.ndarray]]:
         """(frame index, world_from_lidar) of the scene's own LiDAR, per selected frame."""
         if self.kind == "frames.json":
-            out = []
-            for f in self.frames:
-                m = self._entries.get(f.index, {}).get("lidar_to_world")
-                if m is not None:
-                    out.append((f.index, np.asarray(m, np.float64)))
-            return out
+            return [(f.index, self.records[self._positions[f.index]].lidar_to_world)
+                    for f in self.frames]
         if self.kind == "synthetic" and "world_from_velo" in self.info:
             return [(f.index, np.asarray(self.info["world_from_velo"][f.index], np.float64))
                     for f in self.frames]

@@ -30,10 +30,11 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 
-from ..errors import UserError
-from . import lighting_edit, xml_edit
-from .posing import NodePoser
-from .xml_edit import SceneDoc
+from ..errors import UserError, mitsuba_message
+from . import lighting_edit
+from ..scene import xml as xml_edit
+from ..scene.posing import place
+from ..scene.xml import SceneDoc
 
 MESH_TYPES = {".obj": "obj", ".ply": "ply"}
 
@@ -109,8 +110,7 @@ def _mesh_bounds(shape_elem: ET.Element, what: str):
     try:
         scene = mi.load_string(ET.tostring(root, encoding="unicode"))
     except Exception as exc:  # Mitsuba reports loader errors as RuntimeError
-        lines = [l for l in str(exc).strip().splitlines() if l.strip()]
-        raise UserError("%s: cannot load the mesh: %s" % (what, lines[-1] if lines else exc)) from None
+        raise UserError("%s: cannot load the mesh: %s" % (what, mitsuba_message(exc))) from None
     shapes = list(scene.shapes())
     bbox = shapes[0].bbox() if shapes else None
     if bbox is None or not bbox.valid():
@@ -259,21 +259,23 @@ def insert_doc(doc: SceneDoc, obj: ObjectSource, pose) -> tuple[SceneDoc, bool]:
 
 
 class TrackHook:
-    """Moves the inserted object along a per-frame track (a render hook)."""
+    """Moves the inserted object along a per-frame track (a render hook).
+
+    ``first_pose`` is the track pose the object was inserted at (its XML
+    ``to_world`` is ``placement(obj, first_pose)``); the object's frame here
+    is the placed one (its bottom centre), so the track's poses apply as given.
+    """
 
     def __init__(self, shape_id: str, track, first_pose):
         self.id = shape_id
         self.track = [np.asarray(p, np.float64) for p in track]
         self.first = np.asarray(first_pose, np.float64)
-        self.poser = None
 
     def __call__(self, scene, frame, sensor):
         if frame.index >= len(self.track):
             raise UserError("--track has %d poses but frame %d is rendered (use --frames 0:%d)"
                             % (len(self.track), frame.index, len(self.track)))
-        if self.poser is None:
-            self.poser = NodePoser(scene, self.id, self.first)
-        self.poser.set_pose(self.track[frame.index])
+        place(scene, {self.id: self.track[frame.index]}, loaded={self.id: self.first})
 
 
 def scene_bounds_without(scene, shape_id: str):

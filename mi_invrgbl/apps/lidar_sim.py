@@ -35,8 +35,8 @@ import xml.etree.ElementTree as ET
 import numpy as np
 
 from ..errors import UserError
-from . import xml_edit
-from .xml_edit import SceneDoc
+from ..scene import xml as xml_edit
+from ..scene.xml import SceneDoc
 
 #: Azimuth steps per sweep of the presets (KITTI's HDL-64E: about 2000 at 10 Hz;
 #: Velodyne's VLP models: 0.2 degrees at 10 Hz).

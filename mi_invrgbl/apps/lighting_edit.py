@@ -35,8 +35,8 @@ import xml.etree.ElementTree as ET
 import numpy as np
 
 from ..errors import UserError
-from . import xml_edit
-from .xml_edit import SKY_TYPES, SceneDoc
+from ..scene import xml as xml_edit
+from ..scene.xml import SKY_TYPES, SceneDoc
 
 #: Angular radius (degrees) of the real sun, used for directional lights.
 SUN_RADIUS_DEG = 0.265

@@ -25,9 +25,11 @@ import os
 import numpy as np
 
 from ..errors import UserError
-from . import lighting_edit, xml_edit
+from . import lighting_edit
+from ..scene import xml as xml_edit
+from ..scene.xml import spot_to_world
 from .lighting_edit import Lighting
-from .xml_edit import SceneDoc
+from ..scene.xml import SceneDoc
 
 #: KITTI's camera height above the road (m): where the road is, seen from a camera.
 CAMERA_HEIGHT = 1.65
@@ -70,11 +72,6 @@ HEADLIGHT_OFFSETS = {1: [(0.0, -0.95, 0.3)],
                      2: [(0.7, -0.95, 0.3), (-0.7, -0.95, 0.3)]}
 #: Headlight axis in the camera frame: forward, tilted 4.6 degrees down.
 HEADLIGHT_AXIS = (0.0, -0.08, 1.0)
-
-
-def spot_to_world(position, direction) -> np.ndarray:
-    from ..synthetic.scene_xml import spot_to_world as _spot
-    return _spot(np.asarray(position, np.float64), np.asarray(direction, np.float64))
 
 
 def spot_element(ident: str, spec: SpotSpec, to_world) -> "xml_edit.ET.Element":

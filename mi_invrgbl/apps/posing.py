@@ -7,10 +7,8 @@ A pose is a 4x4 ``world_from_object`` matrix. On the command line it is
 or ``lidar_to_world`` per frame) or text with one pose per line (KITTI's
 12-number 3x4 rows, or 4 numbers ``x y z yaw``).
 
-:class:`NodePoser` moves one shape of a loaded scene rigidly, Gaussians or
-mesh, by rewriting its parameters through ``mi.traverse``: updating in place
-keeps the compiled kernels valid, and the ``invrgbl`` integrator notices the
-new geometry (its visibility cache is keyed on the parameter arrays).
+Moving a shape of a loaded scene to a pose is
+:func:`mi_invrgbl.scene.posing.place`'s job.
 """
 
 from __future__ import annotations
@@ -123,67 +121,3 @@ def scene_bounds(scene, exclude: str | None = None):
         else:
             bbox.expand(s.bbox())
     return bbox
-
-
-# ------------------------------------------------------------------ moving
-
-
-def _split(m):
-    lin = np.asarray(m, np.float64)[:3, :3]
-    scale = float(np.cbrt(np.linalg.det(lin)))
-    return lin / scale, scale, np.asarray(m, np.float64)[:3, 3]
-
-
-class NodePoser:
-    """Moves one Gaussian or mesh shape of a loaded scene rigidly.
-
-    ``loaded_pose`` is the ``world_from_object`` the shape was loaded with
-    (its XML ``to_world``); :meth:`set_pose` places the object frame at a new pose.
-    """
-
-    def __init__(self, scene, shape_id: str, loaded_pose=None, params=None):
-        import mitsuba as mi
-        self.params = params if params is not None else mi.traverse(scene)
-        self.id = shape_id
-        p = self.params
-        R0, s0, t0 = _split(np.eye(4) if loaded_pose is None else loaded_pose)
-        if shape_id + ".data" in p:
-            from ..physics.gaussian_ply import quaternion_to_matrix
-            self.kind = "gaussians"
-            data = np.array(p[shape_id + ".data"], np.float64).reshape(-1, 10)
-            self.centers = ((data[:, :3] - t0) @ R0) / s0        # R0^T (c - t0) / s0
-            self.scales = data[:, 3:6] / s0
-            q = np.concatenate([data[:, 9:10], data[:, 6:9]], axis=1)   # w x y z
-            self.rotations = R0.T[None] @ quaternion_to_matrix(q)
-            self.normals = (np.array(p[shape_id + ".normal"], np.float64).reshape(-1, 3) @ R0
-                            if shape_id + ".normal" in p else None)
-        elif shape_id + ".vertex_positions" in p:
-            self.kind = "mesh"
-            v = np.array(p[shape_id + ".vertex_positions"], np.float64).reshape(-1, 3)
-            self.vertices = ((v - t0) @ R0) / s0
-            key = shape_id + ".vertex_normals"
-            n = np.array(p[key], np.float64).reshape(-1, 3) if key in p else np.zeros((0, 3))
-            self.vertex_normals = n @ R0 if n.size else None
-        else:
-            raise UserError("shape '%s' cannot be moved (neither Gaussians nor a mesh)" % shape_id)
-
-    def set_pose(self, pose, update: bool = True) -> None:
-        import mitsuba as mi
-        from ..physics.gaussian_ply import matrix_to_quaternion
-        R, s, t = _split(pose)
-        p = self.params
-        if self.kind == "gaussians":
-            q = matrix_to_quaternion(R[None] @ self.rotations)      # w x y z
-            data = np.concatenate([self.centers * s @ R.T + t, self.scales * s,
-                                   q[:, 1:4], q[:, :1]], axis=1)
-            p[self.id + ".data"] = mi.Float(data.astype(np.float32).ravel())
-            if self.normals is not None:
-                p[self.id + ".normal"] = mi.TensorXf((self.normals @ R.T).astype(np.float32))
-        else:
-            v = self.vertices * s @ R.T + t
-            p[self.id + ".vertex_positions"] = mi.Float(v.astype(np.float32).ravel())
-            if self.vertex_normals is not None:
-                p[self.id + ".vertex_normals"] = mi.Float(
-                    (self.vertex_normals @ R.T).astype(np.float32).ravel())
-        if update:
-            p.update()

@@ -15,7 +15,7 @@ import numpy as np
 from ..errors import UserError
 from . import lighting_edit, solar
 from .lighting_edit import Lighting
-from .xml_edit import SceneDoc
+from ..scene.xml import SceneDoc
 
 
 def new_lighting(base: Lighting | None, *, elevation=None, azimuth=None, time=None,

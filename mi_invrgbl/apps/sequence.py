@@ -15,14 +15,9 @@ import time
 import numpy as np
 
 from ..errors import UserError
+from ..scene.loading import load_scene, parse_defines
 from . import video
 from .frames import FrameSet, write_origin
-
-
-def load_scene(path: str, defines=None):
-    """``mi.load_file`` with one clear error (the message names the file)."""
-    from ..commands.render import load_scene as _load
-    return _load(path, defines)
 
 
 def render_frames(scene, frames: FrameSet, out_dir: str, spp: int = 0, hooks=(),
@@ -99,7 +94,7 @@ def add_render_options(p, default_exposure: float = 1.0) -> None:
 
 def apply_integrator_options(doc, args) -> None:
     """``--samples``: the ``invrgbl`` integrator's M."""
-    from . import xml_edit
+    from ..scene import xml as xml_edit
     integrator = doc.integrator()
     if getattr(args, "samples", 0):
         if args.samples < 1:
@@ -111,7 +106,6 @@ def apply_integrator_options(doc, args) -> None:
 
 
 def defines(args) -> dict:
-    from ..commands.render import parse_defines
     return parse_defines(getattr(args, "defines", []) or [])
 
 

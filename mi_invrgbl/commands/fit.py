@@ -109,7 +109,7 @@ def _carry_frames(scene, staging: Path, target: Path) -> None:
     """A fit folder outside its import folder gets a copy of ``frames.json``
     (paths rewritten relative to it), so that ``eval`` finds the frames and
     their observations from the fit folder alone."""
-    from ..scene_graph import Frames
+    from ..scene.frames import Frames
     if (target / "frames.json").is_file() or (target.parent / "frames.json").is_file():
         return
     try:

@@ -53,6 +53,9 @@ def add_parser(subparsers):
     p.add_argument("--beams", type=int, default=None, help="LiDAR beams (default: from the data, 64)")
     p.add_argument("--sky-order", type=int, default=d.sky_order,
                    help="SH order of the initial sky (default %(default)s)")
+    p.add_argument("--no-triangulate", dest="triangulate", action="store_false",
+                   help="no camera-only Gaussians from multi-view triangulation of the "
+                        "training images (surfaces above the top beam and beyond range)")
     p.add_argument("--extend-walls", type=float, default=d.extend_walls,
                    help="extend facades cut by the LiDAR's top beam upward by this many metres, "
                         "so the cameras' view above the LiDAR has Gaussians (default %(default)s; 0: off)")
@@ -73,7 +76,7 @@ def options_from_args(args):
         dynamic=args.dynamic, object_points=args.object_points, knn=args.knn,
         opacity=args.opacity, min_range=args.min_range, max_range=args.max_range,
         intensity=args.intensity, beams=args.beams, sky_order=args.sky_order,
-        extend_walls=args.extend_walls,
+        extend_walls=args.extend_walls, triangulate=args.triangulate,
         check_odometry=args.check_odometry, overwrite=args.overwrite,
         verify=not args.no_verify)
 

@@ -13,7 +13,7 @@ from .. import outdir
 from ..apps import insert, sequence
 from ..apps.frames import FrameSet
 from ..apps.posing import check_inside, parse_pose, read_trajectory
-from ..apps.xml_edit import SceneDoc
+from ..scene.xml import SceneDoc
 from ..errors import UserError
 from .relight import _floats
 

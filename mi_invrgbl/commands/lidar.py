@@ -19,7 +19,7 @@ from .. import outdir
 from ..apps import lidar_sim, sequence, video
 from ..apps.frames import FrameSet, parse_selection
 from ..apps.posing import check_inside, parse_pose, read_trajectory, scene_bounds
-from ..apps.xml_edit import SceneDoc
+from ..scene.xml import SceneDoc
 from ..errors import UserError
 
 
@@ -64,7 +64,7 @@ def _poses(args, doc):
     if args.trajectory:
         poses = read_trajectory(args.trajectory)
         return [(k, poses[k]) for k in parse_selection(args.frames, len(poses))], False
-    from ..apps import xml_edit
+    from ..scene import xml as xml_edit
     sensors = xml_edit.load_parts(doc, ("sensor",), "its sensors")
     try:
         found = FrameSet(args.scene, sensors, args.frames).lidar_poses(sensors)

@@ -19,7 +19,7 @@ def add_parser(subparsers):
     p = subparsers.add_parser(
         "make-scene", help="generate a synthetic street with ground truth (KITTI layout)",
         description="Generate a seeded synthetic street scene: RGB renders at two times of "
-                    "day and at night, 64-beam LiDAR sweeps, KITTI calib/poses/labels and "
+                    "day and at night, LiDAR sweeps (HDL-64, VLP-32C, OS1-128 or an explicit ray pattern), KITTI calib/poses/labels and "
                     "ground-truth material, normal, depth and sun-visibility maps.")
     p.add_argument("kind", choices=KINDS, help="scene kind (only 'street' for now)")
     p.add_argument("out", metavar="OUT", help="output folder (must not exist yet)")
@@ -41,6 +41,12 @@ def add_parser(subparsers):
     p.add_argument("--bsdf", choices=("roughplastic", "cooktorrance"), default=d.bsdf,
                    help="BSDF of the true materials: Mitsuba's roughplastic (default) or the "
                         "paper's cooktorrance, the family 'fit' searches")
+    p.add_argument("--lidar", default=d.lidar, metavar="SENSOR",
+                   help="LiDAR: hdl64 (default), vlp32 (non-uniform 32-beam table), os128, or "
+                        "rays:FILE (an explicit (N, 6) or (N, 7) ray list in the sensor frame)")
+    p.add_argument("--intensity", choices=("raw", "reflectivity"), default=d.intensity,
+                   help="LiDAR intensity: raw return strength (default) or range-compensated "
+                        "reflectivity (as KITTI's HDL-64E reports)")
     p.set_defaults(run=run)
     return p
 
@@ -51,7 +57,8 @@ def config_from_args(args):
                         height=args.height, fov=args.fov, spp=args.spp,
                         max_depth=args.max_depth, beams=args.beams,
                         azimuth_steps=args.azimuth_steps, step=args.step,
-                        night=not args.no_night, bsdf=args.bsdf)
+                        night=not args.no_night, bsdf=args.bsdf, lidar=args.lidar,
+                        intensity=args.intensity)
 
 
 def run(args) -> int:

@@ -9,10 +9,11 @@ falloff. Writes the edited ``scene.xml`` (+ ``scene.diff``),
 from __future__ import annotations
 
 from .. import outdir
-from ..apps import lighting_edit, night, sequence, xml_edit
+from ..apps import lighting_edit, night, sequence
+from ..scene import xml as xml_edit
 from ..apps.frames import FrameSet
 from ..apps.posing import parse_pose
-from ..apps.xml_edit import SceneDoc
+from ..scene.xml import SceneDoc
 from ..errors import UserError
 from .relight import _floats
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 from .. import outdir
 from ..apps import lighting_edit, relight, sequence
 from ..apps.frames import FrameSet
-from ..apps.xml_edit import SceneDoc
+from ..scene.xml import SceneDoc
 
 
 def _floats(text):

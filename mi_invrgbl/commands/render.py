@@ -12,7 +12,8 @@ import time
 
 import numpy as np
 
-from ..errors import UserError, mitsuba_message
+from ..errors import UserError
+from ..scene.loading import is_lidar, load_scene, parse_defines
 
 
 def add_parser(sub):
@@ -30,31 +31,6 @@ def add_parser(sub):
                    help="replace this command's earlier results in the output folder "
                         "(only the files it wrote; anything else there is kept)")
     p.set_defaults(run=run)
-
-
-def parse_defines(defines):
-    out = {}
-    for item in defines:
-        if "=" not in item:
-            raise UserError("-D expects KEY=VALUE, got '%s'" % item)
-        key, value = item.split("=", 1)
-        out[key.strip()] = value.strip()
-    return out
-
-
-def load_scene(path, defines=None):
-    """``mi.load_file`` with one clear error for a missing or broken file."""
-    import mitsuba as mi
-    if not os.path.isfile(path):
-        raise UserError("%s: scene file not found" % path)
-    try:
-        return mi.load_file(path, **(defines or {}))
-    except Exception as exc:  # Mitsuba reports parse and plugin errors as RuntimeError
-        raise UserError("%s: cannot load scene: %s" % (path, mitsuba_message(exc))) from None
-
-
-def is_lidar(sensor):
-    return type(sensor).__name__ == "LidarSensor" or sensor.class_name() == "LidarSensor"
 
 
 def sensor_name(sensor, index):

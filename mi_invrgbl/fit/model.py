@@ -2,24 +2,11 @@
 
 Each ``gaussians`` node of the scene (the static ``background`` and one node
 per moving object) is held here in its own frame (world for the background,
-the object's frame for objects) in unconstrained form:
-
-==============  =====  ===============================================
-key             width  meaning
-==============  =====  ===============================================
-center          3      centre (node frame)
-log_scale       3      natural log of the three standard deviations
-quat            4      rotation quaternion x y z w (normalised on use)
-opacity_logit   1      logit of the opacity
-colour          3      view-independent colour (stage 1 only)
-normal          3      shading normal (node frame; normalised on use)
-albedo          3      RGB albedo in [0, 1]
-roughness       1      GGX roughness in [0.02, 1]
-lidar_albedo    1      LiDAR albedo in [0, 1]
-sun_visibility  1      the paper's v_sun in [0, 1]: how much sun reaches the
-                       Gaussian (traced at stage 2's start, then learned where
-                       the sun is used; stands in for occluders the fit lacks)
-==============  =====  ===============================================
+the object's frame for objects) in unconstrained form: one flat Dr.Jit array
+per field of :mod:`mi_invrgbl.physics.fields`, keyed by the field's
+``variable`` (``center``, ``log_scale``, ``rotation`` (x y z w),
+``opacity_logit``, stage 1's ``colour``, and the material fields ``normal``,
+``albedo``, ``roughness``, ``lidar_albedo``, ``sun_visibility``, ...).
 
 :meth:`GaussianModel.push` writes a node's world-frame arrays into the scene's
 ``gaussians`` shape (``mi.traverse`` keys ``<id>.data``, ``<id>.opacities``,
@@ -36,22 +23,16 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
+from ..physics.fields import BY_NAME, FIELDS, GEOMETRY, MATERIAL
 from ..physics.gaussian_ply import GaussianCloud
 from ..plugins.gaussians import cloud_from_shape, apply_transform
-from ..scene_graph import _rotation_to_quat_xyzw as rotation_to_quat_xyzw
+from ..scene.posing import rotation_to_quat_xyzw
 
-GEOMETRY_KEYS = ("center", "log_scale", "quat", "opacity_logit")
-MATERIAL_KEYS = ("normal", "albedo", "roughness", "lidar_albedo", "sun_visibility")
-WIDTHS = {"center": 3, "log_scale": 3, "quat": 4, "opacity_logit": 1, "colour": 3,
-          "normal": 3, "albedo": 3, "roughness": 1, "lidar_albedo": 1, "sun_visibility": 1}
-ROUGHNESS_RANGE = (0.02, 1.0)
+GEOMETRY_KEYS = tuple(f.variable for f in GEOMETRY)
+MATERIAL_KEYS = tuple(f.variable for f in MATERIAL)
+WIDTHS = {f.variable: f.width for f in FIELDS}
 #: Opacity logit bounds: keeps sigmoid away from exactly 0/1 (log(1 - a) finite).
-LOGIT_RANGE = (-9.0, 9.0)
-
-
-def _logit(p):
-    p = np.clip(p, 1e-4, 1 - 1e-4)
-    return np.log(p / (1 - p))
+LOGIT_RANGE = BY_NAME["opacity"].storage_range()
 
 
 @dataclass
@@ -119,23 +100,10 @@ class GaussianModel:
         the node frame when the cloud is in world coordinates."""
         if pose is not None:
             cloud = apply_transform(cloud, np.linalg.inv(pose))
-        n = len(cloud)
         node = self.nodes[name]
-        node.count = n
-        q = cloud.quaternions / np.linalg.norm(cloud.quaternions, axis=1, keepdims=True)
-        values = {
-            "center": cloud.centers,
-            "log_scale": np.log(np.maximum(cloud.scales, 1e-6)),
-            "quat": np.concatenate([q[:, 1:4], q[:, :1]], axis=1),
-            "opacity_logit": _logit(cloud.opacities),
-            "colour": cloud.albedo,
-            "normal": cloud.normals,
-            "albedo": cloud.albedo,
-            "roughness": cloud.roughness,
-            "lidar_albedo": cloud.lidar_albedo,
-            "sun_visibility": cloud.sun_visibility,
-        }
-        node.values = {k: mi.Float(np.asarray(v, np.float32).ravel()) for k, v in values.items()}
+        node.count = len(cloud)
+        node.values = {f.variable: mi.Float(f.to_storage(getattr(cloud, f.cloud)).astype(np.float32).ravel())
+                       for f in FIELDS}
 
     def keys(self, names):
         return ["%s.%s" % (n, k) for n in self.nodes for k in names]
@@ -156,7 +124,7 @@ class GaussianModel:
     def world_geometry(self, node: Node, pose=None):
         """Differentiable (data, opacities) of a node at ``pose`` (node -> world)."""
         c = node.vec("center")
-        q = node.vec("quat")
+        q = node.vec("rotation")
         q = mi.Quaternion4f(q.x, q.y, q.z, q.w)
         q = q * dr.rsqrt(dr.maximum(dr.squared_norm(q), 1e-20))
         if pose is not None and node.dynamic:
@@ -192,12 +160,16 @@ class GaussianModel:
             p = self.params
             p[name + ".data"] = data
             p[name + ".opacities"] = opac
-            p[name + ".albedo"] = node.values["colour" if stage == 1 else "albedo"]
-            p[name + ".normal"] = self.world_normal(node, poses.get(name))
-            p[name + ".roughness"] = node.values["roughness"]
-            p[name + ".lidar_albedo"] = node.values["lidar_albedo"]
-            if name + ".sun_visibility" in p:
-                p[name + ".sun_visibility"] = node.values["sun_visibility"]
+            for f in MATERIAL:
+                if name + "." + f.name not in p:
+                    continue
+                if f.name == "normal":
+                    value = self.world_normal(node, poses.get(name))
+                elif f.name == "albedo" and stage == 1:
+                    value = node.values["colour"]
+                else:
+                    value = node.values[f.variable]
+                p[name + "." + f.name] = value
         if update:
             self.params.update()
 
@@ -205,19 +177,11 @@ class GaussianModel:
     def cloud(self, name, stage=2) -> GaussianCloud:
         """The node as a :class:`GaussianCloud` in its own frame."""
         node = self.nodes[name]
-        q = node.numpy("quat")
-        q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)
-        n = node.numpy("normal")
-        n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        logit = np.clip(node.numpy("opacity_logit"), *LOGIT_RANGE)
-        return GaussianCloud(
-            centers=node.numpy("center"), scales=np.exp(node.numpy("log_scale")),
-            quaternions=np.concatenate([q[:, 3:4], q[:, :3]], axis=1),
-            opacities=1 / (1 + np.exp(-logit)), normals=n,
-            albedo=np.clip(node.numpy("albedo" if stage == 2 else "colour"), 0, 1),
-            roughness=node.numpy("roughness"), lidar_albedo=node.numpy("lidar_albedo"),
-            sun_visibility=np.clip(node.numpy("sun_visibility"), 0, 1),
-            source="node '%s'" % name)
+        arrays = {f.cloud: f.from_storage(node.numpy(f.variable)).astype(np.float32)
+                  for f in GEOMETRY + MATERIAL}
+        if stage != 2:
+            arrays["albedo"] = BY_NAME["colour"].from_storage(node.numpy("colour")).astype(np.float32)
+        return GaussianCloud(**arrays, source="node '%s'" % name)
 
     def state_dict(self):
         return {"%s.%s" % (name, k): np.array(v, np.float32)

@@ -20,7 +20,7 @@ import mitsuba as mi
 from ..errors import UserError
 from ..io.images import read_exr
 from ..io.kitti import srgb_to_linear
-from ..scene_graph import Frames
+from ..scene.frames import Frames
 
 
 @dataclass

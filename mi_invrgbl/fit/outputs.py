@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import time
 import os
-import xml.etree.ElementTree as ET
 
 import numpy as np
 import drjit as dr
@@ -20,62 +19,38 @@ import mitsuba as mi
 
 from ..io.images import write_exr
 from ..physics.gaussian_ply import write_ply
+from ..scene import xml
+from ..scene.xml import SceneDoc
 from .progress import peak_rss_mb, plot_error_vs_time
-
-
-def _fmt(values):
-    return " ".join("%.7g" % float(v) for v in np.asarray(values, np.float64).ravel())
-
-
-def _set_child(elem, tag, name, value):
-    for child in elem:
-        if child.get("name") == name:
-            elem.remove(child)
-    ET.SubElement(elem, tag, {"name": name, "value": value})
 
 
 def fitted_xml(ctx, lidar=False):
     """The fitted scene's XML text (camera or LiDAR integrator)."""
-    tree = ET.parse(ctx.scene_path)
-    root = tree.getroot()
+    doc = SceneDoc.load(ctx.scene_path, resolve_paths=False)
     sky = np.array(dr.detach(ctx.params[ctx.sky_key]), np.float64).reshape(-1, 3)
     order = getattr(ctx, "sh_order", ctx.sky_emitter.order)
-    sky = sky[: (order + 1) ** 2]
-    for em in root.iter("emitter"):
+    for em in doc.root.iter("emitter"):
         if em.get("type") == "shsun":
-            _set_child(em, "string", "sh", _fmt(sky))
-            _set_child(em, "integer", "order", str(order))
             d = np.array(dr.detach(ctx.params[ctx.sun_dir_key]), np.float64).ravel()
-            for child in list(em):
-                if child.get("name") == "sun_direction":
-                    em.remove(child)
-            ET.SubElement(em, "vector", {"name": "sun_direction", "x": "%.7g" % d[0],
-                                         "y": "%.7g" % d[1], "z": "%.7g" % d[2]})
             e = np.array(dr.detach(ctx.params[ctx.sun_key]), np.float64).ravel() if ctx.use_sun \
                 else np.zeros(3)
-            _set_child(em, "rgb", "sun_irradiance", _fmt(e))
-    for integ in list(root.findall("integrator")):
-        root.remove(integ)
+            for child in xml.shsun_emitter(None, sky, order, d, e):
+                xml.set_child(em, child)
     if lidar:
         r = ctx.response
         lobe = ctx.selection.get("lidar_lobe", {}).get("model", "pbr")
-        integ = ET.Element("integrator", {"type": "lidar_return"})
-        ET.SubElement(integ, "string", {"name": "model", "value": lobe})
-        ET.SubElement(integ, "float", {"name": "range_exponent",
-                                       "value": "%.6g" % float(r.range_exponent[0])})
-        ET.SubElement(integ, "float", {"name": "angle_exponent",
-                                       "value": "%.6g" % float(r.angle_exponent[0])})
-        ET.SubElement(integ, "string", {"name": "beam_gains", "value": _fmt(np.array(r.beam_gains))})
+        integ = xml.integrator("lidar_return", model=lobe,
+                               range_exponent=float(r.range_exponent[0]),
+                               angle_exponent=float(r.angle_exponent[0]),
+                               beam_gains=xml.numbers_text(np.array(r.beam_gains)))
     else:
-        integ = ET.Element("integrator", {"type": "invrgbl"})
         samples = ctx.selection.get("samples", {}).get("samples", ctx.config.samples)
-        ET.SubElement(integ, "integer", {"name": "samples", "value": str(samples)})
+        integ = xml.integrator("invrgbl", samples=int(samples))
         if getattr(ctx, "sun_visibility_learned", False):
             # The fitted v_sun holds for the fitted sun; relight/night switch to trace.
-            ET.SubElement(integ, "string", {"name": "sun_visibility", "value": "attribute"})
-    root.insert(0, integ)
-    ET.indent(tree, space="  ")
-    return ET.tostring(root, encoding="unicode")
+            xml.set_child_param(integ, "string", "sun_visibility", "attribute")
+    doc.set_integrator(integ)
+    return doc.to_string()
 
 
 def _write_text(path, text):

@@ -20,6 +20,7 @@ import mitsuba as mi
 
 from ..physics import brdf, hits as hitlib
 from ..physics.lighting import environment_radiance
+from ..physics.lidar_response import LidarResponse as Response  # noqa: F401 (the fit's name)
 
 
 # ---------------------------------------------------------------- stage 1
@@ -30,11 +31,10 @@ def camera_unlit(scene, rays, max_hits=32, min_transmittance=1e-2):
     g = hitlib.eval_gaussian_hits(nodes, rays, hl)
     w, t_after = hitlib.blend_weights(g)
     colour = hitlib.gather_attribute(nodes, "albedo", g.node_ids, g.prims, g.active)
-    rgb = hitlib.composite(g, w, mi.Color3f(colour))
-    rgb += mi.Color3f(environment_radiance(scene, rays.d)) * t_after
-    alpha = hitlib.composite(g, w, mi.Float(1.0))
-    depth = hitlib.composite(g, w, g.t)
-    return rgb, alpha, depth
+    c = hitlib.composite_front_to_back(
+        g, w, t_after, {"rgb": mi.Color3f(colour), "alpha": 1.0, "depth": g.t},
+        {"rgb": mi.Color3f(environment_radiance(scene, rays.d))})
+    return c["rgb"], c["alpha"], c["depth"]
 
 
 def lidar_beams(integrator, scene, rays, row, near):
@@ -120,34 +120,10 @@ def camera_shaded(integrator, scene, lighting, nodes, rays, fh: FrozenHits):
     """Physically based colour + AOVs of a frozen frame (``invrgbl``'s shading)."""
     g = frozen_gaussian_hits(nodes, rays, fh)
     colour, albedo, n, tau, rho = integrator.shade_gaussian_hits(lighting, nodes, rays, fh, g)
-    w = fh.weight
-    rgb = hitlib.composite(g, w, colour)
-    sky = dr.select(fh.surface, 0.0, fh.t_after)
-    rgb += mi.Color3f(environment_radiance(scene, rays.d)) * sky
-    return {
-        "rgb": rgb,
-        "albedo": hitlib.composite(g, w, albedo),
-        "normal": hitlib.composite(g, w, n),
-        "roughness": hitlib.composite(g, w, tau),
-        "lidar_albedo": hitlib.composite(g, w, rho),
-        "alpha": hitlib.composite(g, w, mi.Float(1.0)),
-    }
-
-
-@dataclass
-class Response:
-    """LiDAR sensor response ``I = g_beam (rho + pi f_s) cos^a / (pi d^b)``."""
-    range_exponent: mi.Float
-    angle_exponent: mi.Float
-    beam_gains: mi.Float
-
-    def __call__(self, factor, cos_theta, distance, row):
-        gain = dr.gather(mi.Float, self.beam_gains,
-                         dr.minimum(row, dr.width(self.beam_gains) - 1))
-        d = dr.maximum(distance, 1e-3)
-        c = dr.clip(cos_theta, 1e-4, 1.0)
-        return gain * factor * dr.exp(self.angle_exponent * dr.log(c)
-                                      - self.range_exponent * dr.log(d)) / dr.pi
+    sky = dr.select(fh.surface, 0.0, mi.Color3f(environment_radiance(scene, rays.d)))
+    return hitlib.composite_front_to_back(
+        g, fh.weight, fh.t_after, {"rgb": colour, "albedo": albedo, "normal": n, "roughness": tau,
+                                   "lidar_albedo": rho, "alpha": 1.0}, {"rgb": sky})
 
 
 def lidar_shaded(nodes, rays, row, near, fh: FrozenHits, response: Response,
@@ -159,13 +135,9 @@ def lidar_shaded(nodes, rays, row, near, fh: FrozenHits, response: Response,
     factor = brdf.lidar_return_factor(rho, tau, g.cos_theta, model, f0)
     dist = fh.t + dr.gather(mi.Float, near, fh.ray)
     intensity_k = response(factor, g.cos_theta, dist, dr.gather(mi.UInt32, row, fh.ray))
-    w = fh.weight
-    return {
-        "intensity": hitlib.composite(g, w, intensity_k),
-        "lidar_albedo": hitlib.composite(g, w, rho),
-        "alpha": hitlib.composite(g, w, mi.Float(1.0)),
-        "range": hitlib.composite(g, w, dist),
-    }
+    return hitlib.composite_front_to_back(
+        g, fh.weight, fh.t_after, {"intensity": intensity_k, "lidar_albedo": rho, "alpha": 1.0,
+                                   "range": dist})
 
 
 def dominant_hit(fh: FrozenHits):

@@ -26,6 +26,21 @@ residuals beyond ``trim`` scales. Only within-surface variation of range,
 angle and beam identifies ``a``, ``b`` and the gains; surfaces seen once
 carry no information about them (they only get their own ``rho``).
 
+Identifiability and priors: on a street seen from a car, the same surface is
+often seen over a narrow span of ranges, and on the road ``cos ~ h / d`` makes
+the angle and range terms nearly collinear; a free fit then trades one for
+the other (and the per-surface reflectance absorbs the rest), which
+reproduces the training poses but not a new pose. So the exponents and the
+log gains carry Gaussian priors from the sensor's kind (:data:`PRIORS`: a
+raw sensor ``a = 1, b = 2``; a range-compensated one ``a = 1, b = 0``),
+i.e. the normal equations get ``s^2 / tau^2`` added on those columns, with
+``s`` the robust residual scale and ``tau`` the prior's width. Where the data
+identify a term (its within-surface information ``>> 1 / tau^2``) the prior
+is negligible; where they do not, the estimate stays at the sensor's kind.
+The posterior standard deviations are reported (``extra``), and a term
+counts as identified where its posterior deviation is below half the
+prior's.
+
 Gauge: surface effects and gains share a common factor; it is fixed by
 ``median(beam_gains) = 1`` and the constant goes into ``rho``, reported in
 the integrator's convention ``rho = pi exp(u) / P_e`` (the specular term is
@@ -38,10 +53,32 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..physics.lidar_response import colocated_intensity_np, format_gains  # noqa: F401
+
 #: Returns at more grazing incidence than this are ignored (cos theta).
 MIN_COS = 0.05
 #: Huber threshold in units of the residual scale (95 % efficiency for Gaussian noise).
 HUBER_K = 1.345
+
+
+@dataclass(frozen=True)
+class ResponsePrior:
+    """Gaussian prior on the response: exponent means and widths, and the
+    width of the log beam gains around 0 (gain 1)."""
+    range_exponent: float
+    angle_exponent: float = 1.0
+    range_std: float = 0.25
+    angle_std: float = 0.25
+    log_gain_std: float = 0.5
+
+
+#: Priors by intensity kind (``frames.json``'s ``lidar.intensity``).
+PRIORS = {"raw": ResponsePrior(2.0), "reflectivity": ResponsePrior(0.0)}
+
+
+def prior_for(kind: str | None) -> ResponsePrior:
+    """The prior for a sensor reporting ``raw`` strength or ``reflectivity``."""
+    return PRIORS.get(str(kind), PRIORS["raw"])
 
 
 @dataclass
@@ -83,15 +120,12 @@ class SensorResponse:
                 "iterations": int(self.iterations), **self.extra}
 
     def predict(self, rho, distance, cos_theta, beam, power: float = 1.0) -> np.ndarray:
-        """Intensity of Lambertian returns under this response (numpy)."""
-        g = np.asarray(self.beam_gains)[np.asarray(beam, np.int64)]
-        c = np.clip(np.asarray(cos_theta, np.float64), 0.0, 1.0)
-        return (g * np.asarray(rho) * power * c ** self.angle_exponent
-                / (np.pi * np.asarray(distance, np.float64) ** self.range_exponent))
-
-
-def format_gains(gains) -> str:
-    return ", ".join("%.6g" % g for g in np.asarray(gains, np.float64).ravel())
+        """Intensity of Lambertian returns under this response (numpy), with
+        the integrator's formula and clamps."""
+        g = np.asarray(self.beam_gains, np.float64)
+        g = g[np.minimum(np.asarray(beam, np.int64), g.size - 1)]
+        return colocated_intensity_np(rho, cos_theta, distance, g, power,
+                                      self.angle_exponent, self.range_exponent)
 
 
 def _weighted_group_mean(values, groups, weights, n_groups, wsum):
@@ -141,7 +175,8 @@ def estimate_response(intensity, distance, cos_theta, beam, surface_id, n_beams:
                       range_exponent: float = 2.0, angle_exponent: float = 1.0,
                       power: float = 1.0, robust: str = "huber", trim: float = 4.0,
                       iterations: int = 20, min_cos: float = MIN_COS,
-                      min_returns_per_beam: int = 20, tol: float = 1e-7) -> SensorResponse:
+                      min_returns_per_beam: int = 20, tol: float = 1e-7,
+                      prior: ResponsePrior | None = None) -> SensorResponse:
     """Fit range/angle exponents, per-beam gains and per-surface reflectance.
 
     Args (one entry per observed return; numpy arrays of equal length):
@@ -161,6 +196,8 @@ def estimate_response(intensity, distance, cos_theta, beam, surface_id, n_beams:
         trim: residuals beyond ``trim`` robust scales get weight 0 (0 = no trimming).
         min_returns_per_beam: beams with fewer used returns keep gain 1 (before
             the median gauge) instead of a noisy estimate.
+        prior: :class:`ResponsePrior` for the free exponents and gains (see
+            the module docstring); ``None``: unregularised least squares.
 
     Returns:
         :class:`SensorResponse`. ``residual_rms`` is the RMS of the log-residuals
@@ -251,6 +288,12 @@ def estimate_response(intensity, distance, cos_theta, beam, surface_id, n_beams:
         # Tiny ridge: keeps the system solvable when a column has no
         # within-surface variation (the parameter then stays at 0 / its prior).
         ridge = 1e-9 * max(float(np.trace(A)) / max(n_cols, 1), 1e-300)
+        A_data = A.copy()
+        if prior is not None and n_cols:
+            s2 = (scale if np.isfinite(scale) else PRIOR_SCALE0) ** 2
+            prec, mean = _prior_terms(prior, nb, fit_angle, fit_range)
+            A = A + np.diag(s2 * prec)
+            rhs = rhs + s2 * prec * mean
         theta_new = np.linalg.solve(A + ridge * np.eye(n_cols), rhs) if n_cols else theta
         # Surface effects from the current theta.
         pred_wo_u = np.zeros_like(y)
@@ -298,8 +341,55 @@ def estimate_response(intensity, distance, cos_theta, beam, surface_id, n_beams:
     rho[s_uniq] = np.pi * np.exp(u) / float(power)
     inl = w > 0
     rms = float(np.sqrt(np.mean(resid[inl] ** 2))) if inl.any() else float("nan")
+    extra = {"residual_scale": scale, "n_inliers": int(inl.sum())}
+    if n_cols and np.isfinite(scale):
+        # Posterior deviations s * sqrt(diag((A_data + s^2 P)^-1)), and the
+        # data's own (no prior): a term is identified where the data alone
+        # pin it to within half the prior's width.
+        s2 = scale ** 2
+        reg = A_data + ridge * np.eye(n_cols)
+        post = reg if prior is None else reg + np.diag(
+            s2 * _prior_terms(prior, nb, fit_angle, fit_range)[0])
+        try:
+            cov_post = s2 * np.linalg.inv(post)
+            cov_data = s2 * np.linalg.pinv(reg, hermitian=True)
+            k = nb
+            for name, on, tau in (("angle_exponent", fit_angle, prior.angle_std if prior else None),
+                                  ("range_exponent", fit_range, prior.range_std if prior else None)):
+                if on:
+                    extra[name + "_std"] = float(np.sqrt(max(cov_post[k, k], 0.0)))
+                    sd = float(np.sqrt(max(cov_data[k, k], 0.0)))
+                    extra[name + "_data_std"] = sd
+                    if tau is not None:
+                        extra[name + "_identified"] = bool(sd < 0.5 * tau)
+                    k += 1
+        except np.linalg.LinAlgError:
+            pass
+    if prior is not None:
+        extra["prior"] = {"range_exponent": prior.range_exponent,
+                          "angle_exponent": prior.angle_exponent,
+                          "range_std": prior.range_std, "angle_std": prior.angle_std,
+                          "log_gain_std": prior.log_gain_std}
     return SensorResponse(b_exp, a_exp, gains, rho, rms, int(idx.size), int(n_s), it,
-                          extra={"residual_scale": scale, "n_inliers": int(inl.sum())})
+                          extra=extra)
+
+
+#: Residual scale (log units) used for the prior's weight before the first
+#: robust estimate.
+PRIOR_SCALE0 = 0.1
+
+
+def _prior_terms(prior: ResponsePrior, n_gain_cols: int, fit_angle: bool, fit_range: bool):
+    """Prior precision (1 / tau^2) and mean of each unknown column."""
+    prec = [1.0 / prior.log_gain_std ** 2] * n_gain_cols
+    mean = [0.0] * n_gain_cols
+    if fit_angle:
+        prec.append(1.0 / prior.angle_std ** 2)
+        mean.append(prior.angle_exponent)
+    if fit_range:
+        prec.append(1.0 / prior.range_std ** 2)
+        mean.append(prior.range_exponent)
+    return np.asarray(prec), np.asarray(mean)
 
 
 # ----------------------------------------------------------------------------

@@ -29,9 +29,9 @@ import mitsuba as mi
 
 from ..errors import UserError
 from ..physics.lighting import LightingCache
-from ..metrics import psnr
+from ..eval.metrics import psnr
 from ..physics import hits as hitlib
-from ..scene_graph import Frames
+from ..scene.frames import Frames
 from . import losses
 from .losses import LossWeights
 from .model import GaussianModel
@@ -102,7 +102,7 @@ class FitContext:
 
     # ---------------------------------------------------------- set-up
     def load(self):
-        from ..commands.render import load_scene
+        from ..scene.loading import load_scene
         t = time.perf_counter()
         self.frames = Frames.load(self.scene_path)
         self.scene = load_scene(self.scene_path)
@@ -455,7 +455,7 @@ def report_sun_refinement(ctx):
 def init_materials(ctx, frozen):
     """LiDAR albedo and response from a log-linear regression over the
     training scans."""
-    from .response import estimate_response
+    from .response import estimate_response, prior_for
     cfg = ctx.config
     t = time.perf_counter()
     # (RGB albedo and the sun's level: Stage2.init_shading, once visibility is traced.)
@@ -489,7 +489,8 @@ def init_materials(ctx, frozen):
         # angle and range exponents are nearly collinear. Fit the range
         # exponent and gains with the Lambertian cos (a = 1) first and free
         # the angle exponent only if that lowers the residual clearly.
-        kw = dict(n_surfaces=ctx.model.total, fit_gains=cfg.fit_response)
+        kw = dict(n_surfaces=ctx.model.total, fit_gains=cfg.fit_response,
+                  prior=prior_for(getattr(ctx.frames.lidar, "intensity", None)))
         res = estimate_response(I, D, C, B, S, ctx.frames.lidar.beams, fit_range=cfg.fit_response,
                                 fit_angle=False, **kw)
         if cfg.fit_response:

@@ -21,13 +21,14 @@ import drjit as dr
 import mitsuba as mi
 
 from . import losses
+from ..physics.fields import BY_VARIABLE
+from ..physics.gaussian_ply import GaussianCloud
 from .model import GEOMETRY_KEYS
 from .render import camera_unlit, lidar_beams
 from .steps import make_optimizer, safe_step
 
-#: Learning rates per variable (positions in metres per step).
-STAGE1_LR = {"center": 2e-3, "log_scale": 5e-3, "quat": 2e-3, "opacity_logit": 2e-2,
-             "colour": 1e-2, "sky": 1e-2}
+#: Learning rate of the sky's SH coefficients (the Gaussians' are in the field table).
+SKY_LR = 1e-2
 
 
 def _gather_rays(rays, idx):
@@ -51,10 +52,10 @@ class Stage1:
         values, lrs = {}, {}
         for key in self.model.keys(GEOMETRY_KEYS + ("colour",)):
             values[key] = self.model.get(key)
-            lrs[key] = STAGE1_LR[key.split(".", 1)[1]] * self.ctx.config.lr_scale
+            lrs[key] = BY_VARIABLE[key.split(".", 1)[1]].lr * self.ctx.config.lr_scale
         if self.ctx.sky_key is not None:
             values["sky.sh"] = self.ctx.params[self.ctx.sky_key]
-            lrs["sky.sh"] = STAGE1_LR["sky"] * self.ctx.config.lr_scale
+            lrs["sky.sh"] = SKY_LR * self.ctx.config.lr_scale
         self.opt = make_optimizer(values, lrs)
 
     def pull(self):
@@ -108,13 +109,9 @@ class Stage1:
     def _clamp(self):
         for key in list(self.opt.keys()):
             k = key.split(".", 1)[1] if "." in key else key
-            v = self.opt[key]
-            if k == "colour":
-                self.opt[key] = dr.clip(v, 0.0, 1.0)
-            elif k == "opacity_logit":
-                self.opt[key] = dr.clip(v, -9.0, 9.0)
-            elif k == "log_scale":
-                self.opt[key] = dr.clip(v, float(np.log(1e-4)), float(np.log(5.0)))
+            bounds = BY_VARIABLE[k].storage_range() if k in BY_VARIABLE else None
+            if bounds is not None:
+                self.opt[key] = dr.clip(self.opt[key], *bounds)
 
     def _accumulate_gradients(self):
         # Positional gradient magnitude per Gaussian, for densification.
@@ -144,7 +141,7 @@ class Stage1:
                 continue
             cloud = self.model.cloud(name, stage=1)
             cloud.albedo = np.clip(node.numpy("colour"), 0, 1)
-            self._replace_cloud(name, _subset(cloud, ~drop))
+            self._replace_cloud(name, cloud.subset(~drop))
             removed[name] = int(drop.sum())
         if removed:
             self._rebuild_optimizer()
@@ -194,18 +191,18 @@ class Stage1:
             big = cloud.scales.max(axis=1) > cfg.split_scale
             split = grow & big
             clone = grow & ~big
-            parts = [_subset(cloud, keep & ~split)]
+            parts = [cloud.subset(keep & ~split)]
             if clone.any():
-                parts.append(_subset(cloud, clone))
+                parts.append(cloud.subset(clone))
             if split.any():
                 for sign in (-1.0, 1.0):
-                    s = _subset(cloud, split)
+                    s = cloud.subset(split)
                     rot = _rotation(s.quaternions)
                     offset = np.einsum("nij,nj->ni", rot, s.scales * self.rng.normal(size=s.scales.shape))
                     s.centers = (s.centers + sign * 0.5 * offset).astype(np.float32)
                     s.scales = (s.scales / 1.6).astype(np.float32)
                     parts.append(s)
-            self._replace_cloud(name, _concat(parts, cloud.source))
+            self._replace_cloud(name, GaussianCloud.concat(parts, cloud.source))
             node = self.model.nodes[name]
             report[name] = (int((~keep).sum()), int(clone.sum()), int(split.sum()), node.count)
             total_now = total_now - len(cloud) + node.count
@@ -217,22 +214,3 @@ class Stage1:
 def _rotation(q_wxyz):
     from ..physics.gaussian_ply import quaternion_to_matrix
     return quaternion_to_matrix(q_wxyz.astype(np.float64))
-
-
-def _subset(cloud, mask):
-    from ..physics.gaussian_ply import GaussianCloud
-    pick = lambda a: None if a is None else a[mask].copy()  # noqa: E731
-    return GaussianCloud(centers=pick(cloud.centers), scales=pick(cloud.scales),
-                         quaternions=pick(cloud.quaternions), opacities=pick(cloud.opacities),
-                         normals=pick(cloud.normals), albedo=pick(cloud.albedo),
-                         roughness=pick(cloud.roughness), lidar_albedo=pick(cloud.lidar_albedo),
-                         sun_visibility=pick(cloud.sun_visibility), source=cloud.source)
-
-
-def _concat(parts, source):
-    from ..physics.gaussian_ply import GaussianCloud
-    cat = lambda name: np.concatenate([getattr(p, name) for p in parts], axis=0)  # noqa: E731
-    return GaussianCloud(centers=cat("centers"), scales=cat("scales"), quaternions=cat("quaternions"),
-                         opacities=cat("opacities"), normals=cat("normals"), albedo=cat("albedo"),
-                         roughness=cat("roughness"), lidar_albedo=cat("lidar_albedo"),
-                         sun_visibility=cat("sun_visibility"), source=source)

@@ -41,6 +41,7 @@ from ..physics import hits as hitlib
 from ..physics.lighting import (GaussianLighting, GaussianTable, LightingCache, light_at,
                                 point_lights, transmittance)
 from . import losses, shading_init
+from ..physics.fields import BY_VARIABLE
 from .model import MATERIAL_KEYS
 from .render import (FrozenHits, Response, VirtualNode, camera_shaded, freeze,
                      lidar_shaded)
@@ -50,8 +51,8 @@ from .superpixels import slic_labels
 #: Metres above a Gaussian's centre its traced sun visibility starts from.
 SHADOW_OFFSET = 0.1
 
-STAGE2_LR = {"normal": 5e-3, "albedo": 1e-2, "roughness": 1e-2, "lidar_albedo": 1e-2,
-             "sun_visibility": 2e-2, "sky": 1e-2, "sun": 2e-2, "sun_direction": 2e-3,
+#: Learning rates of the scene-wide variables (the Gaussians' are in the field table).
+STAGE2_LR = {"sky": 1e-2, "sun": 2e-2, "sun_direction": 2e-3,
              "range_exponent": 2e-3, "angle_exponent": 2e-3,
              "beam_gains": 1e-2}
 
@@ -137,7 +138,7 @@ class Stage2:
             if key.endswith(".sun_visibility") and not self.learn_sun_visibility:
                 continue
             values[key] = model.get(key)
-            lrs[key] = STAGE2_LR[key.split(".", 1)[1]]
+            lrs[key] = BY_VARIABLE[key.split(".", 1)[1]].lr
         if ctx.sky_key is not None and ctx.config.weights.rgb > 0:
             values["sky.sh"] = ctx.params[ctx.sky_key]
             lrs["sky.sh"] = STAGE2_LR["sky"]
@@ -367,10 +368,9 @@ class Stage2:
         for key in list(self.opt.keys()):
             k = key.split(".", 1)[1]
             v = self.opt[key]
-            if k in ("albedo", "lidar_albedo", "sun_visibility"):
-                self.opt[key] = dr.clip(v, 0.0, 1.0)
-            elif k == "roughness":
-                self.opt[key] = dr.clip(v, 0.02, 1.0)
+            bounds = BY_VARIABLE[k].storage_range() if k in BY_VARIABLE else None
+            if bounds is not None:
+                self.opt[key] = dr.clip(v, *bounds)
             elif k == "sun_irradiance":
                 # Never exactly 0: shsun would then drop the sun (has_sun), the
                 # lighting cache key would change and the sun could not come back.

@@ -96,6 +96,7 @@ class ImportOptions:
     sky_order: int = 2
     sun_irradiance: float = 0.0
     extend_walls: float = 10.0         # metres above the top beam's hits (0: off)
+    triangulate: bool = True           # camera-only geometry (io/triangulate.py)
     overwrite: bool = False
     verify: bool = True
 
@@ -269,6 +270,9 @@ def import_scene(data, out_xml, options: ImportOptions | None = None, log=print)
         if opts.extend_walls > 0:
             steps.run("extend walls", _extend_walls, state, opts, log)
         steps.run("normals", _background, state, opts, log)
+        if opts.triangulate:
+            from .triangulate import import_step
+            steps.run("triangulate", import_step, src, state, opts, log)
         steps.run("objects", _objects, state, opts, log)
         steps.run("colours", _colours, state, opts, log)
         frames = steps.run("write", _write, src, state, opts, out.path, out_xml.name, data)
@@ -414,21 +418,23 @@ class _LenientPoses(dict):
 
 # -- accumulate ----------------------------------------------------------------------
 
-def _lidar_table(src, opts):
-    syn = src.synthetic
-    if syn and isinstance(syn.get("lidar"), dict):
-        li = syn["lidar"]
-        beams = int(opts.beams or li.get("beams", 64))
-        top, bottom = li.get("elevation_deg", [2.0, -24.9])
-        return beams, np.radians(np.linspace(float(top), float(bottom), beams))
-    return int(opts.beams or 64), None
+def _lidar_table(state, opts, log):
+    """Beam count and table from the sweeps themselves (any spinning sensor,
+    any point order); ``None`` for the table when KITTI's firing order
+    assigns the beams sweep by sweep."""
+    from .range_image import detect_beam_layout
+    layout = detect_beam_layout([pts for pts, _ in state["scans"]], n_beams=opts.beams)
+    log("[import] LiDAR: %s" % layout.describe())
+    if layout.method == "scan_order":
+        return layout.n_beams, None
+    return layout.n_beams, layout.elevations
 
 
 def _intensity_kind(src, opts):
     if opts.intensity != "auto":
         kind = opts.intensity
     elif src.synthetic is not None:
-        kind = "raw"
+        kind = ((src.synthetic or {}).get("lidar") or {}).get("intensity", "raw")
     else:
         kind = "reflectivity"      # KITTI's HDL-64 (raw and odometry layouts)
     ref = opts.reference_range
@@ -443,7 +449,7 @@ def _intensity_kind(src, opts):
 def _accumulate(src, state, opts, log):
     from .range_image import range_image
 
-    beams, table = _lidar_table(src, opts)
+    beams, table = _lidar_table(state, opts, log)
     state["intensity"] = _intensity_kind(src, opts)
     W = opts.azimuth_steps
     poses = state["poses"]
@@ -736,9 +742,9 @@ def _cloud(d, opts, source):
 def _write(src, state, opts, tmp: Path, scene_name: str, data):
     import cv2
     from ..physics.gaussian_ply import write_ply
-    from ..scene_graph import (Frames, FrameRecord, ObjectRecord, CameraInfo, LidarInfo)
+    from ..scene.frames import Frames, FrameRecord, ObjectRecord, CameraInfo, LidarInfo
+    from ..scene.imported import imported_scene
     from .images import write_exr
-    from .scene_writer import scene_xml
 
     drive = src.drive
     obs = tmp / "observations"
@@ -814,10 +820,9 @@ def _write(src, state, opts, tmp: Path, scene_name: str, data):
     frames.save(tmp / "frames.json")
     comment = ("Imported by mi-invrgbl import from %s (%d frames). Per-frame sensors "
                "camera_NNNN / lidar_NNNN; dynamic objects at frame 0 (see frames.json and "
-               "mi_invrgbl.scene_graph.set_frame)." % (Path(data).absolute(), len(records)))
-    (tmp / scene_name).write_text(scene_xml(frames, sky_order=opts.sky_order,
-                                            sun_irradiance=opts.sun_irradiance,
-                                            comment=comment))
+               "mi_invrgbl.scene.posing.set_frame)." % (Path(data).absolute(), len(records)))
+    imported_scene(frames, tmp / scene_name, sky_order=opts.sky_order,
+                   sun_irradiance=opts.sun_irradiance, comment=comment).write(str(tmp / scene_name))
     return frames
 
 

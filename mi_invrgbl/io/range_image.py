@@ -193,6 +193,142 @@ def assign_beams(points, n_beams: int = 64, method: str = "auto",
 
 
 # ----------------------------------------------------------------------------
+# Beam layout of a drive
+# ----------------------------------------------------------------------------
+
+#: A sensor whose returns leave an azimuth gap wider than this (degrees) is not
+#: spinning: its rays form an explicit pattern (solid-state, Livox-style).
+SPINNING_MAX_GAP_DEG = 60.0
+
+
+@dataclass
+class BeamLayout:
+    """What the sweeps of a drive say about their sensor.
+
+    ``kind`` is ``spinning`` (rows = beams, columns = azimuth steps) or
+    ``rays`` (an explicit pattern: ``rays`` holds its unit directions in the
+    sensor frame and ``ray_beam`` the beam of each). ``elevations`` is the
+    beam table (radians, descending, row 0 = top beam); ``method`` how it was
+    found: ``histogram`` (separated elevation clusters), ``scan_order``
+    (KITTI's firing order; beams overlap in elevation), ``kmeans`` (neither:
+    ``n_beams`` clusters of the elevations, approximate).
+    """
+    kind: str
+    elevations: np.ndarray
+    method: str
+    uniform: bool
+    rays: np.ndarray | None = None
+    ray_beam: np.ndarray | None = None
+
+    @property
+    def n_beams(self) -> int:
+        return int(self.elevations.size)
+
+    def describe(self) -> str:
+        e = np.degrees(self.elevations)
+        table = ("%s table %+.3f..%+.3f deg" % ("uniform" if self.uniform else "non-uniform",
+                                              e[0], e[-1])) if e.size else "no table"
+        if self.kind == "rays":
+            return ("explicit ray pattern: %d rays in %d beam(s), %s (from the %s of the "
+                    "sweeps)" % (len(self.rays), self.n_beams, table,
+                                 "elevation histogram" if self.method == "histogram" else self.method))
+        how = {"histogram": "elevation histogram of the sweeps",
+               "scan_order": "firing order of the points (beams overlap in elevation)",
+               "kmeans": "k-means of the elevations (beams overlap; approximate)"}[self.method]
+        return "spinning sensor, %d beams, %s (%s)" % (self.n_beams, table, how)
+
+
+def _azimuth_gap_deg(points) -> float:
+    az = np.degrees(np.arctan2(points[:, 1], points[:, 0])) % 360.0
+    occ = np.bincount(np.floor(az).astype(np.int64) % 360, minlength=360) > 0
+    if not occ.any():
+        return 360.0
+    # Longest circular run of empty one-degree bins.
+    empty = np.concatenate([~occ, ~occ]).astype(np.int64)
+    run = best = 0
+    for v in empty:
+        run = run + 1 if v else 0
+        best = max(best, run)
+    return float(min(best, 360))
+
+
+def _pattern_rays(points, clusters):
+    """Distinct ray directions of an explicit pattern: per beam, returns
+    sorted by azimuth and split where the azimuth jumps (> 1e-4 rad)."""
+    d = points / np.maximum(np.linalg.norm(points, axis=1, keepdims=True), 1e-12)
+    az = np.arctan2(d[:, 1], d[:, 0])
+    beam = clusters.beam
+    ok = beam >= 0
+    order = np.lexsort((az[ok], beam[ok]))
+    b_s, a_s, d_s = beam[ok][order], az[ok][order], d[ok][order]
+    new = np.ones(b_s.size, bool)
+    new[1:] = (b_s[1:] != b_s[:-1]) | (np.diff(a_s) > 1e-4)
+    ray_id = np.cumsum(new) - 1
+    n = int(ray_id[-1]) + 1 if ray_id.size else 0
+    rays = np.zeros((n, 3))
+    for k in range(3):
+        rays[:, k] = np.bincount(ray_id, weights=d_s[:, k], minlength=n)
+    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-12)
+    return rays, b_s[new]
+
+
+def detect_beam_layout(sweeps, n_beams: int | None = None,
+                       max_points: int = 4_000_000) -> BeamLayout:
+    """The sensor's beam layout from its sweeps (sensor-frame points, any order).
+
+    1. Pattern: a spinning sensor covers the full circle in azimuth; returns
+       with a gap wider than :data:`SPINNING_MAX_GAP_DEG` come from an
+       explicit ray pattern, whose distinct directions are recovered.
+    2. Beams: the elevation histogram of all sweeps
+       (:func:`mi_invrgbl.physics.beam_layout.elevation_clusters`), exact for
+       beams that share one origin, uniform or not. Where beams overlap in
+       elevation (the HDL-64E's lasers sit at different heights), KITTI's
+       firing order gives the rings if it is consistent over the sweeps;
+       failing that, ``n_beams`` (default 64) k-means clusters.
+
+    ``n_beams`` is only a hint for that last resort: a count found in the data
+    wins over it.
+    """
+    from ..physics.beam_layout import elevation_clusters
+    pts = [np.asarray(p, np.float64)[:, :3] for p in sweeps if len(p)]
+    if not pts:
+        raise UserError("no LiDAR returns in any sweep: cannot find the beam layout")
+    allp = np.concatenate(pts)
+    if allp.shape[0] > max_points:
+        allp = allp[:: int(np.ceil(allp.shape[0] / max_points))]
+    rng = np.linalg.norm(allp, axis=1)
+    allp = allp[rng > 1e-6]
+    elev = _elevation(allp)
+    cl = elevation_clusters(elev)
+    if _azimuth_gap_deg(allp) > SPINNING_MAX_GAP_DEG:
+        from ..physics.beam_layout import ray_beams
+        rays, _ = _pattern_rays(allp, cl) if cl.separated else (None, None)
+        if rays is None:
+            # No rows: every distinct direction (1e-4 rad grid) is its own ray.
+            d = allp / np.linalg.norm(allp, axis=1, keepdims=True)
+            _, first = np.unique(np.round(d / 1e-4).astype(np.int64), axis=0, return_index=True)
+            rays = d[np.sort(first)]
+        beam, table = ray_beams(rays)
+        uniform = bool(table.size < 3 or np.allclose(np.diff(table), np.diff(table).mean(),
+                                                     rtol=0.02))
+        return BeamLayout("rays", table, "histogram", uniform, rays, beam)
+    if cl.separated and cl.n_beams >= 2:
+        return BeamLayout("spinning", cl.elevations, "histogram", cl.uniform)
+    rings = [int(scan_order_rings(p).max()) + 1 for p in pts]
+    values, counts = np.unique(rings, return_counts=True)
+    best = int(values[np.argmax(counts)])
+    if best >= 4 and counts.max() >= 0.8 * len(pts):
+        tables = [assign_beams(p, best, "scan_order")[1] for p, r in zip(pts, rings) if r == best]
+        table = np.median(np.stack(tables), axis=0)
+        return BeamLayout("spinning", table, "scan_order", False)
+    n = int(n_beams or 64)
+    labels = cluster_elevations(elev, n)
+    k = int(labels.max()) + 1
+    table = np.sort(np.array([np.median(elev[labels == j]) for j in range(k)]))[::-1]
+    return BeamLayout("spinning", table, "kmeans", False)
+
+
+# ----------------------------------------------------------------------------
 # Range image
 # ----------------------------------------------------------------------------
 
@@ -243,9 +379,9 @@ def range_image(points, intensity, width: int = 2048, n_beams: int = 64,
     intensity = np.asarray(intensity, np.float32).reshape(-1)
     if points.shape[0] != intensity.shape[0]:
         raise ValueError("points and intensity differ in length")
-    H, W = n_beams, width
     if beam_elevations is not None:
         n_beams = len(beam_elevations)
+    H, W = n_beams, width
     rows, elevations, used = assign_beams(points, n_beams, method, beam_elevations)
     cols = azimuth_to_column(np.arctan2(points[:, 1], points[:, 0]), W)
     rng = np.linalg.norm(points.astype(np.float64), axis=1)

@@ -6,9 +6,9 @@ properties follow the 3D Gaussian Splatting layout::
     x y z  nx ny nz  f_dc_0..2  [f_rest_*]  opacity  <extras>  scale_0..2  rot_0..3
 
 ``opacity`` is stored as a logit and ``scale_*`` as natural logs, ``rot_0`` is
-the quaternion's real part. mi-invrgbl adds the per-Gaussian material fields
-``albedo_0..2``, ``roughness``, ``lidar_albedo`` and ``sun_visibility`` in the
-middle, so that Mitsuba's own ``ellipsoids`` PLY reader (which insists on the
+the quaternion's real part. mi-invrgbl adds the per-Gaussian material fields of
+:mod:`.fields` (``albedo_0..2``, ``roughness``, ``lidar_albedo``,
+``sun_visibility``, ...) in the middle, so that Mitsuba's own ``ellipsoids`` PLY reader (which insists on the
 first six and last seven fields) still reads our files.
 
 A plain 3DGS file loads with defaults: normals from the shortest ellipsoid axis
@@ -19,12 +19,13 @@ when ``nx, ny, nz`` are absent or zero, albedo from the DC colour, roughness
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import field as dc_field, make_dataclass
 
 import numpy as np
 
+from .fields import BY_NAME, GEOMETRY, MATERIAL
+
 SH_C0 = 0.28209479177387814  # real SH band-0 constant: colour = 0.5 + SH_C0 * f_dc
-DEFAULT_ROUGHNESS = 0.5
 _PLY_TYPES = {"float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
               "uchar": "u1", "uint8": "u1", "char": "i1", "int8": "i1",
               "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
@@ -35,23 +36,16 @@ class GaussianFileError(ValueError):
     """A Gaussian PLY file or array that cannot be used; the message names the file."""
 
 
-@dataclass
-class GaussianCloud:
+class _CloudMethods:
     """Per-Gaussian arrays in linear (not log/logit) units, world space.
 
     ``quaternions`` are (w, x, y, z), unit length. ``opacities`` in [0, 1].
+    One attribute per field of :mod:`.fields` (``centers``, ``scales``,
+    ``quaternions``, ``opacities``, then the material fields ``normals``,
+    ``albedo``, ``roughness``, ``lidar_albedo``, ``sun_visibility``, ...;
+    material fields may be None until :meth:`with_defaults`), then ``source``
+    and ``extra``.
     """
-    centers: np.ndarray                      # (N, 3)
-    scales: np.ndarray                       # (N, 3) standard deviations
-    quaternions: np.ndarray                  # (N, 4) w x y z
-    opacities: np.ndarray                    # (N,)
-    normals: np.ndarray | None = None        # (N, 3)
-    albedo: np.ndarray | None = None         # (N, 3) linear RGB
-    roughness: np.ndarray | None = None      # (N,)
-    lidar_albedo: np.ndarray | None = None   # (N,)
-    sun_visibility: np.ndarray | None = None  # (N,)
-    source: str = "<arrays>"
-    extra: dict = field(default_factory=dict)
 
     def __len__(self):
         return int(self.centers.shape[0])
@@ -62,34 +56,31 @@ class GaussianCloud:
         if self.normals is None or not np.any(self.normals):
             self.normals = shortest_axis(self.quaternions, self.scales)
         if self.albedo is None:
-            self.albedo = np.full((n, 3), 0.5, np.float32)
-        if self.roughness is None:
-            self.roughness = np.full(n, DEFAULT_ROUGHNESS, np.float32)
+            self.albedo = np.full((n, 3), BY_NAME["albedo"].default, np.float32)
         if self.lidar_albedo is None:
             self.lidar_albedo = (self.albedo @ np.array([0.2126, 0.7152, 0.0722])).astype(np.float32)
-        if self.sun_visibility is None:
-            self.sun_visibility = np.ones(n, np.float32)
+        for f in MATERIAL:
+            if getattr(self, f.cloud) is None:
+                shape = (n,) if f.width == 1 else (n, f.width)
+                setattr(self, f.cloud, np.full(shape, f.default, np.float32))
         return self
 
     def validate(self) -> "GaussianCloud":
         """Refuse NaN/inf and wrong shapes with a message naming the source and field."""
         n = len(self)
-        expect = {"centers": 3, "scales": 3, "quaternions": 4, "opacities": None,
-                  "normals": 3, "albedo": 3, "roughness": None, "lidar_albedo": None,
-                  "sun_visibility": None}
-        for name, width in expect.items():
-            value = getattr(self, name)
+        for f in GEOMETRY + MATERIAL:
+            value = getattr(self, f.cloud)
             if value is None:
                 continue
-            shape = (n,) if width is None else (n, width)
+            shape = (n,) if f.width == 1 else (n, f.width)
             if value.shape != shape:
                 raise GaussianFileError("%s: field '%s' has shape %s, expected %s"
-                                        % (self.source, name, value.shape, shape))
+                                        % (self.source, f.cloud, value.shape, shape))
             bad = ~np.isfinite(value)
             if bad.any():
                 rows = np.unique(np.nonzero(bad)[0])
                 raise GaussianFileError("%s: field '%s' holds NaN/inf for %d Gaussian(s) "
-                                        "(first: index %d)" % (self.source, name, rows.size, rows[0]))
+                                        "(first: index %d)" % (self.source, f.cloud, rows.size, rows[0]))
         if np.any(self.scales < 0):
             raise GaussianFileError("%s: negative scales" % self.source)
         qn = np.linalg.norm(self.quaternions, axis=1)
@@ -97,6 +88,28 @@ class GaussianCloud:
             raise GaussianFileError("%s: %d zero-length rotation quaternion(s)"
                                     % (self.source, int(np.sum(qn < 1e-12))))
         return self
+
+    def subset(self, mask) -> "GaussianCloud":
+        """The Gaussians selected by ``mask`` (boolean or index array), copied."""
+        pick = lambda a: None if a is None else a[mask].copy()  # noqa: E731
+        return GaussianCloud(**{f.cloud: pick(getattr(self, f.cloud)) for f in GEOMETRY + MATERIAL},
+                             source=self.source)
+
+    @staticmethod
+    def concat(parts, source) -> "GaussianCloud":
+        """One cloud holding every Gaussian of ``parts`` (all with defaults filled)."""
+        return GaussianCloud(**{f.cloud: np.concatenate([getattr(p, f.cloud) for p in parts], axis=0)
+                                for f in GEOMETRY + MATERIAL}, source=source)
+
+
+#: The cloud's array attributes in field order (geometry first, required).
+GaussianCloud = make_dataclass(
+    "GaussianCloud",
+    [(f.cloud, np.ndarray) for f in GEOMETRY]
+    + [(f.cloud, "np.ndarray | None", dc_field(default=None)) for f in MATERIAL]
+    + [("source", str, dc_field(default="<arrays>")),
+       ("extra", dict, dc_field(default_factory=dict))],
+    bases=(_CloudMethods,), namespace={"__module__": __name__, "__doc__": _CloudMethods.__doc__})
 
 
 def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
@@ -202,24 +215,22 @@ def read_ply(path: str) -> GaussianCloud:
             raise GaussianFileError("%s: missing PLY field(s) %s" % (path, ", ".join(missing)))
         return np.stack([np.asarray(data[k], np.float64) for k in keys], 1)
 
-    def optional(*keys):
-        return cols(*keys).astype(np.float32) if all(k in names for k in keys) else None
-
-    centers = cols("x", "y", "z")
-    scales = np.exp(cols("scale_0", "scale_1", "scale_2"))
-    quats = cols("rot_0", "rot_1", "rot_2", "rot_3")
-    opacities = 1.0 / (1.0 + np.exp(-cols("opacity")[:, 0])) if "opacity" in names else np.ones(count)
-    albedo = optional("albedo_0", "albedo_1", "albedo_2")
-    if albedo is None and "f_dc_0" in names:
+    arrays = {}
+    for f in GEOMETRY + MATERIAL:
+        required = f.name in ("center", "scale", "rotation")
+        if not (required or all(k in names for k in f.ply)):
+            continue                  # defaults below and in with_defaults()
+        arrays[f.cloud] = f.ply_to_cloud(cols(*f.ply))
+        arrays[f.cloud] = arrays[f.cloud].astype(np.float32)
+        if f.width == 1:
+            arrays[f.cloud] = arrays[f.cloud][:, 0]
+    if "opacities" not in arrays:
+        arrays["opacities"] = np.ones(count, np.float32)
+    if "albedo" not in arrays and "f_dc_0" in names:
         srgb = np.clip(0.5 + SH_C0 * cols("f_dc_0", "f_dc_1", "f_dc_2"), 0.0, 1.0)
-        albedo = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4).astype(np.float32)
-    single = lambda k: optional(k)[:, 0] if k in names else None  # noqa: E731
-    cloud = GaussianCloud(
-        centers=centers.astype(np.float32), scales=scales.astype(np.float32),
-        quaternions=quats.astype(np.float32), opacities=opacities.astype(np.float32),
-        normals=optional("nx", "ny", "nz"), albedo=albedo,
-        roughness=single("roughness"), lidar_albedo=single("lidar_albedo"),
-        sun_visibility=single("sun_visibility"), source=path)
+        arrays["albedo"] = np.where(srgb <= 0.04045, srgb / 12.92,
+                                    ((srgb + 0.055) / 1.055) ** 2.4).astype(np.float32)
+    cloud = GaussianCloud(**arrays, source=path)
     cloud.validate()
     norm = np.linalg.norm(cloud.quaternions, axis=1, keepdims=True)
     cloud.quaternions = (cloud.quaternions / norm).astype(np.float32)
@@ -234,26 +245,23 @@ def write_ply(path: str, cloud: GaussianCloud) -> None:
     """
     cloud = cloud.with_defaults()
     n = len(cloud)
-    eps = 1e-7
-    op = np.clip(cloud.opacities, eps, 1 - eps)
     # DC colour so that plain 3DGS viewers show the albedo (in sRGB).
     lin = np.clip(cloud.albedo, 0, 1)
     srgb = np.where(lin <= 0.0031308, lin * 12.92, 1.055 * np.power(lin, 1 / 2.4) - 0.055)
-    fields = [
-        ("x", cloud.centers[:, 0]), ("y", cloud.centers[:, 1]), ("z", cloud.centers[:, 2]),
-        ("nx", cloud.normals[:, 0]), ("ny", cloud.normals[:, 1]), ("nz", cloud.normals[:, 2]),
-        ("f_dc_0", (srgb[:, 0] - 0.5) / SH_C0), ("f_dc_1", (srgb[:, 1] - 0.5) / SH_C0),
-        ("f_dc_2", (srgb[:, 2] - 0.5) / SH_C0),
-        ("opacity", np.log(op / (1 - op))),
-        ("albedo_0", cloud.albedo[:, 0]), ("albedo_1", cloud.albedo[:, 1]), ("albedo_2", cloud.albedo[:, 2]),
-        ("roughness", cloud.roughness), ("lidar_albedo", cloud.lidar_albedo),
-        ("sun_visibility", cloud.sun_visibility),
-        ("scale_0", np.log(np.maximum(cloud.scales[:, 0], 1e-30))),
-        ("scale_1", np.log(np.maximum(cloud.scales[:, 1], 1e-30))),
-        ("scale_2", np.log(np.maximum(cloud.scales[:, 2], 1e-30))),
-        ("rot_0", cloud.quaternions[:, 0]), ("rot_1", cloud.quaternions[:, 1]),
-        ("rot_2", cloud.quaternions[:, 2]), ("rot_3", cloud.quaternions[:, 3]),
-    ]
+    # Mitsuba's own ``ellipsoids`` reader insists on x y z nx ny nz first and
+    # scale_0..2 rot_0..3 last; the DC colour (for plain 3DGS viewers), the
+    # opacity and the other material fields go in between.
+    head, tail = ("center", "normal"), ("scale", "rotation")
+    middle = [f for f in GEOMETRY + MATERIAL if f.name not in head + tail and f.ply]
+    dc = [("f_dc_%d" % c, (srgb[:, c] - 0.5) / SH_C0) for c in range(3)]
+    fields = []
+    for group in ([BY_NAME[k] for k in head], None, middle, [BY_NAME[k] for k in tail]):
+        if group is None:
+            fields += dc
+            continue
+        for f in group:
+            cols = f.cloud_to_ply(getattr(cloud, f.cloud))
+            fields += [(name, cols[:, j]) for j, name in enumerate(f.ply)]
     table = np.empty(n, dtype=[(k, "<f4") for k, _ in fields])
     for k, v in fields:
         table[k] = v

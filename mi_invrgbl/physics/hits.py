@@ -31,13 +31,12 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+# Per-Gaussian attribute widths and the defaults a plain ``ellipsoids`` shape
+# without them reads: from the one table of per-Gaussian fields.
+from .fields import ATTRIBUTE_DEFAULTS, ATTRIBUTE_WIDTHS
+
 #: Largest per-hit opacity: keeps log(1 - a) finite for the transmittance.
 ALPHA_MAX = 0.99
-#: Per-Gaussian attribute defaults when a plain ``ellipsoids`` shape lacks them.
-ATTRIBUTE_DEFAULTS = {"albedo": 0.5, "roughness": 0.5, "lidar_albedo": 0.5,
-                      "sun_visibility": 1.0}
-ATTRIBUTE_WIDTHS = {"normal": 3, "albedo": 3, "roughness": 1, "lidar_albedo": 1,
-                    "sun_visibility": 1}
 #: Minimum scale used when mapping rays into a Gaussian's frame.
 MIN_SCALE = 1e-7
 
@@ -305,6 +304,23 @@ def composite(g: GaussianHits, weights, values):
     if isinstance(v, mi.Float):
         return reduce(v)
     return type(v)(*[reduce(v[i]) for i in range(len(v))])
+
+
+def composite_front_to_back(g: GaussianHits, weights, t_after, per_hit: dict, behind: dict = None):
+    """Alpha compositing of every channel: ``sum_k w_k c_k + T c_behind``.
+
+    ``weights`` and ``t_after`` come from :func:`blend_weights` (or a frozen
+    trace); ``per_hit`` maps a channel name to its per-hit values (or a
+    constant, e.g. 1 for the accumulated opacity); ``behind`` maps a channel
+    name to the per-ray value of what the ray meets behind the Gaussians (a
+    mesh, the sky), already zero where there is nothing, seen through the
+    transmittance ``T`` they leave. Returns channel name -> per-ray value.
+    Every integrator and the fit composite through this one function.
+    """
+    out = {name: composite(g, weights, v) for name, v in per_hit.items()}
+    for name, v in (behind or {}).items():
+        out[name] = out[name] + t_after * v
+    return out
 
 
 def ad_integrator_base():

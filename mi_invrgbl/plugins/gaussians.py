@@ -8,13 +8,11 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
+from ..physics.fields import MATERIAL
 from ..physics.gaussian_ply import GaussianCloud, GaussianFileError, read_ply
 
 _variant = mi.variant()
 
-#: Per-Gaussian attributes attached to the ``ellipsoids`` shape, with widths.
-MATERIAL_FIELDS = {"normal": 3, "albedo": 3, "roughness": 1, "lidar_albedo": 1,
-                   "sun_visibility": 1}
 #: Scales below this are raised to it: a zero axis would make the ray-space
 #: transform of the Gaussian singular (division by the scale).
 MIN_SCALE = 1e-6
@@ -113,12 +111,13 @@ def cloud_from_props(props) -> GaussianCloud:
             return default
         return value.reshape(n, width) if width > 1 else value.reshape(n)
 
-    quats = get("quaternions", 4, np.tile(np.float32([1, 0, 0, 0]), (n, 1)))
+    # Material tensors are named like the shape's attributes, except the
+    # normals (the cloud's ``normals``), as documented above.
     cloud = GaussianCloud(
         centers=centers.reshape(n, 3), scales=get("scales", 3, np.full((n, 3), 0.01, np.float32)),
-        quaternions=quats, opacities=get("opacities", 1, np.ones(n, np.float32)),
-        normals=get("normals", 3), albedo=get("albedo", 3), roughness=get("roughness", 1),
-        lidar_albedo=get("lidar_albedo", 1), sun_visibility=get("sun_visibility", 1),
+        quaternions=get("quaternions", 4, np.tile(np.float32([1, 0, 0, 0]), (n, 1))),
+        opacities=get("opacities", 1, np.ones(n, np.float32)),
+        **{f.cloud: get(f.cloud if f.name == "normal" else f.name, f.width) for f in MATERIAL},
         source="gaussians '%s'" % props.id())
     cloud.validate()
     cloud.quaternions = cloud.quaternions / np.linalg.norm(cloud.quaternions, axis=1, keepdims=True)
@@ -157,12 +156,10 @@ def ellipsoids_dict(cloud: GaussianCloud, shape_id: str = "", extent: float = 3.
         "data": mi.TensorXf(data),
         "opacities": mi.TensorXf(np.clip(cloud.opacities, 0, 1).reshape(n, 1).astype(np.float32)),
         "extent": float(extent),
-        "normal": mi.TensorXf(normals.astype(np.float32)),
-        "albedo": mi.TensorXf(cloud.albedo.reshape(n, 3).astype(np.float32)),
-        "roughness": mi.TensorXf(cloud.roughness.reshape(n, 1).astype(np.float32)),
-        "lidar_albedo": mi.TensorXf(cloud.lidar_albedo.reshape(n, 1).astype(np.float32)),
-        "sun_visibility": mi.TensorXf(cloud.sun_visibility.reshape(n, 1).astype(np.float32)),
     }
+    for f in MATERIAL:
+        value = normals if f.name == "normal" else getattr(cloud, f.cloud)
+        d[f.name] = mi.TensorXf(np.asarray(value, np.float32).reshape(n, f.width))
     if shape_id:
         d["id"] = shape_id
     return d
@@ -184,8 +181,7 @@ def cloud_from_shape(shape) -> GaussianCloud:
     return GaussianCloud(
         centers=data[:, :3].copy(), scales=data[:, 3:6].copy(), quaternions=quats,
         opacities=np.array(p["opacities"], np.float32).reshape(n),
-        normals=field("normal", 3), albedo=field("albedo", 3), roughness=field("roughness", 1),
-        lidar_albedo=field("lidar_albedo", 1), sun_visibility=field("sun_visibility", 1),
+        **{f.cloud: field(f.name, f.width) for f in MATERIAL},
         source="shape '%s'" % shape.id()).with_defaults()
 
 

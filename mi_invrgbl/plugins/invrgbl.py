@@ -198,49 +198,37 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
         hit_list = hitlib.trace(scene, rays, self.max_hits, self.min_transmittance, nodes)
         n_rays = dr.width(rays.o)
 
-        L = dr.zeros(mi.Color3f, n_rays)
-        albedo_aov = dr.zeros(mi.Color3f, n_rays)
-        normal_aov = dr.zeros(mi.Vector3f, n_rays)
-        tau_aov = dr.zeros(mi.Float, n_rays)
-        rho_aov = dr.zeros(mi.Float, n_rays)
-        depth_aov = dr.zeros(mi.Float, n_rays)
-        alpha = dr.zeros(mi.Float, n_rays)
-        t_after = dr.ones(mi.Float, n_rays)
-
+        g = hitlib.eval_gaussian_hits(nodes, rays, hit_list)
+        w, t_after = hitlib.blend_weights(g)
         if nodes:
             lighting = GaussianLighting(scene, nodes, self.samples, self.cache,
                                         trace_sun=self.sun_visibility == "trace")
-            g = hitlib.eval_gaussian_hits(nodes, rays, hit_list)
-            w, t_after = hitlib.blend_weights(g)
             colour, albedo, n, tau, rho_l = self.shade_gaussian_hits(lighting, nodes, rays, hit_list, g)
-            L = hitlib.composite(g, w, colour)
-            albedo_aov = hitlib.composite(g, w, albedo)
-            normal_aov = hitlib.composite(g, w, n)
-            tau_aov = hitlib.composite(g, w, tau)
-            rho_aov = hitlib.composite(g, w, rho_l)
-            depth_aov = hitlib.composite(g, w, g.t)
-            alpha = hitlib.composite(g, w, mi.Float(1.0))
+        else:
+            colour, albedo, n, tau, rho_l = mi.Color3f(0), mi.Color3f(0), mi.Vector3f(0), 0.0, 0.0
+        per_hit = {"rgb": colour, "albedo": albedo, "normal": n, "roughness": tau,
+                   "lidar_albedo": rho_l, "depth": g.t, "alpha": 1.0}
 
+        # Behind the Gaussians: a mesh shaded with its own BSDF, else the sky.
         si = hit_list.surface_interaction(rays)
         surf = hit_list.surface_valid & si.is_valid()
-        s_w = dr.select(surf, t_after, 0.0)
+        behind = {"rgb": dr.zeros(mi.Color3f, n_rays)}
         if dr.any(surf):
-            L += s_w * self.shade_surface(scene, sampler, si, nodes, surf)
             a, t, r = self.surface_materials(scene, si, surf)
-            albedo_aov += s_w * a
-            normal_aov += s_w * si.sh_frame.n
-            tau_aov += s_w * t
-            rho_aov += s_w * r
-            depth_aov += s_w * dr.select(surf, si.t, 0.0)  # si.t is inf off the surface: 0 * inf = NaN
-            alpha += s_w
-
-        # Background: the sky seen through whatever transmittance is left.
+            behind = {"rgb": self.shade_surface(scene, sampler, si, nodes, surf),
+                      "albedo": dr.select(surf, a, 0.0), "normal": dr.select(surf, si.sh_frame.n, 0.0),
+                      "roughness": dr.select(surf, t, 0.0), "lidar_albedo": dr.select(surf, r, 0.0),
+                      # si.t is inf off the surface: 0 * inf = NaN
+                      "depth": dr.select(surf, si.t, 0.0), "alpha": dr.select(surf, 1.0, 0.0)}
+            behind["rgb"] = dr.select(surf, behind["rgb"], 0.0)
         env = scene.environment()
         if env is not None and not self.hide_emitters:
-            miss = ~surf
             bg = dr.zeros(mi.SurfaceInteraction3f, n_rays)
             bg.wi = -rays.d
-            L += dr.select(miss, t_after * mi.Color3f(env.eval(bg, miss)), 0.0)
+            behind["rgb"] = dr.select(surf, behind["rgb"], mi.Color3f(env.eval(bg, ~surf)))
+        c = hitlib.composite_front_to_back(g, w, t_after, per_hit, behind)
+        L, albedo_aov, normal_aov = c["rgb"], c["albedo"], c["normal"]
+        tau_aov, rho_aov, depth_aov, alpha = c["roughness"], c["lidar_albedo"], c["depth"], c["alpha"]
 
         aovs = [albedo_aov.x, albedo_aov.y, albedo_aov.z, normal_aov.x, normal_aov.y,
                 normal_aov.z, tau_aov, rho_aov, depth_aov, alpha]

@@ -34,8 +34,11 @@ Spinning LiDAR (:monosp:`lidar`)
  * - rays
    - |string|
    - Path to a ``.npy`` array of shape (N, 6): ray origins (3) and directions
-     (3) in the sensor frame, for scan patterns that are not a grid. The film
-     is then N x 1 and pixel ``i`` is ray ``i``. (Default: none)
+     (3) in the sensor frame, for scan patterns that are not a grid; or (N, 7)
+     whose last column is each ray's beam. The film is then N x 1 and pixel
+     ``i`` is ray ``i``. Without the beam column, a ray's beam is found from
+     its elevation (rows of the pattern; a pattern without rows is one beam,
+     see :mod:`mi_invrgbl.physics.beam_layout`). (Default: none)
 
  * - near_clip
    - |float|
@@ -76,7 +79,13 @@ range as ``near_clip + t``, or use :py:meth:`all_rays` with ``clip=False``
 (origin at the sensor, ``maxt = far_clip``) and drop returns closer than
 :py:attr:`near_clip` themselves.
 
-Python helpers for integrators: :py:meth:`beam_grid`,
+Beams: every pixel belongs to a beam (:py:meth:`beam_index`), which is what a
+per-beam quantity (a gain, a ray-drop rate) must be indexed by: the film row
+of a spinning sensor, the ray's own beam in ``rays`` mode, whose film has a
+single row.
+
+Python helpers for integrators: :py:meth:`beam_grid`, :py:meth:`beam_index`,
+:py:meth:`beam_at`, :py:attr:`n_beams`,
 :py:meth:`ray_directions_local`, :py:meth:`all_rays`, :py:meth:`origin`,
 :py:attr:`near_clip`, :py:attr:`far_clip`, :py:attr:`width`,
 :py:attr:`height`.
@@ -154,16 +163,20 @@ def _load_rays(path: str) -> np.ndarray:
     except Exception as exc:
         raise LidarError("lidar: parameter 'rays' could not read %r (%s)" % (path, exc)) from None
     rays = np.asarray(rays, dtype=np.float64)
-    if rays.ndim != 2 or rays.shape[1] != 6 or rays.shape[0] == 0:
+    if rays.ndim != 2 or rays.shape[1] not in (6, 7) or rays.shape[0] == 0:
         raise LidarError("lidar: parameter 'rays' must be a non-empty (N, 6) array "
-                         "of origins and directions, got shape %s" % (rays.shape,))
+                         "of origins and directions (or (N, 7) with each ray's beam), "
+                         "got shape %s" % (rays.shape,))
     if not np.all(np.isfinite(rays)):
         raise LidarError("lidar: parameter 'rays' contains NaN or Inf")
-    norms = np.linalg.norm(rays[:, 3:], axis=1)
+    norms = np.linalg.norm(rays[:, 3:6], axis=1)
     if np.any(norms < 1e-12):
         raise LidarError("lidar: parameter 'rays' has a zero direction (row %d)"
                          % int(np.argmin(norms)))
-    rays[:, 3:] /= norms[:, None]
+    if rays.shape[1] == 7 and (np.any(rays[:, 6] < 0) or np.any(rays[:, 6] != np.round(rays[:, 6]))):
+        raise LidarError("lidar: parameter 'rays': column 7 (beam) must hold "
+                         "non-negative integers")
+    rays[:, 3:6] /= norms[:, None]
     return rays
 
 
@@ -193,6 +206,7 @@ class LidarSensor(mi.Sensor):
                              "'rays' (got %s)" % ", ".join(modes))
         self._rays_local = None       # (N, 6) in the explicit-ray mode
         self._elevations_deg = None   # (H,) in the grid modes with a table
+        self._ray_beam = None         # (N,) beam of each ray in the explicit-ray mode
         fov = None
         if "preset" in props:
             name = str(props.get("preset")).lower()
@@ -203,7 +217,13 @@ class LidarSensor(mi.Sensor):
         elif "elevations" in props:
             self._elevations_deg = _parse_elevations(str(props.get("elevations")))
         elif "rays" in props:
-            self._rays_local = _load_rays(str(props.get("rays")))
+            rays = _load_rays(str(props.get("rays")))
+            if rays.shape[1] == 7:
+                self._ray_beam = rays[:, 6].astype(np.int64)
+            else:
+                from ..physics.beam_layout import ray_beams
+                self._ray_beam = ray_beams(rays[:, 3:6])[0]
+            self._rays_local = rays[:, :6]
         else:
             fov = (_float_prop(props, "fov_up", 2.0), _float_prop(props, "fov_down", -24.9))
             if not (-90.0 <= fov[1] <= fov[0] <= 90.0):
@@ -247,6 +267,12 @@ class LidarSensor(mi.Sensor):
     def _build_tables(self):
         dirs = self.ray_directions_local().reshape(-1, 3)
         self._dirs = mi.Vector3f(*(dirs[:, k].astype(np.float32) for k in range(3)))
+        if self._rays_local is None:
+            beam = np.repeat(np.arange(self._height), self._width)
+        else:
+            beam = self._ray_beam
+        self._beams = mi.UInt32(beam.astype(np.uint32))
+        self._n_beams = int(beam.max()) + 1
         if self._rays_local is None:
             self._origins = None
         else:
@@ -298,6 +324,19 @@ class LidarSensor(mi.Sensor):
     def explicit_rays(self) -> bool:
         """True in the explicit-ray mode (``rays``)."""
         return self._rays_local is not None
+
+    @property
+    def n_beams(self) -> int:
+        """Number of beams (film height; in ``rays`` mode the ray list's beams)."""
+        return self._n_beams
+
+    def beam_index(self) -> mi.UInt32:
+        """Beam of every pixel, row-major (index ``row * W + col``)."""
+        return mi.UInt32(self._beams)
+
+    def beam_at(self, position_sample) -> mi.UInt32:
+        """Beam of the pixel that :py:meth:`sample_ray` traces for ``position_sample``."""
+        return dr.gather(mi.UInt32, self._beams, self._pixel_index(position_sample))
 
     def beam_grid(self):
         """Beam elevations (H,) and column azimuths (W,) in radians (numpy float64).

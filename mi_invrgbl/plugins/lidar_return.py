@@ -6,17 +6,12 @@ import drjit as dr
 import mitsuba as mi
 
 from ..physics import brdf, hits as hitlib
+from ..physics.lidar_response import LidarResponse, parse_gains
 
 _variant = mi.variant()
 
 #: Output channels of ``mi.render`` with this integrator, in order.
 CHANNELS = ("intensity", "range", "hit", "lidar_albedo", "alpha")
-
-
-def _parse_list(value):
-    if isinstance(value, str):
-        return [float(v) for v in value.replace(",", " ").split()]
-    return [float(value)]
 
 
 class LidarReturnIntegrator(hitlib.ad_integrator_base()):
@@ -52,7 +47,9 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
          report range-compensated reflectivity (KITTI's HDL-64E) fit ``b ~ 0``.
      * - beam_gains
        - |string|
-       - Per-beam gain ``g_beam``, one value per film row (comma separated),
+       - Per-beam gain ``g_beam``, one value per beam (comma separated; the
+         beam is the ``lidar`` sensor's ``beam_index``: the film row, or in
+         ``rays`` mode each ray's own beam),
          or a single value. (Default: 1)
      * - f0
        - |float|
@@ -99,7 +96,7 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
         self.range_exponent = mi.Float(float(props.get("range_exponent", 2.0)))
         self.angle_exponent = mi.Float(float(props.get("angle_exponent", 1.0)))
         gains = props.get("beam_gains", "1")
-        self.beam_gains = mi.Float(_parse_list(gains))
+        self.beam_gains = mi.Float(parse_gains(gains))
         self.f0 = float(props.get("f0", brdf.F0_DEFAULT))
         if self.max_hits < 1:
             raise ValueError("lidar_return: max_hits must be >= 1")
@@ -117,13 +114,20 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
     # ------------------------------------------------------------------ rays
     @staticmethod
     def beam_rays(sensor):
-        """One ray per film pixel centre (row-major), and its row index."""
+        """One ray per film pixel centre (row-major), and its beam.
+
+        The beam is the ``lidar`` sensor's :py:meth:`beam_at` (the film row of
+        a spinning sensor, the ray's own beam in ``rays`` mode); other sensors
+        use the film row.
+        """
         size = sensor.film().crop_size()
         width, height = int(size[0]), int(size[1])
         idx = dr.arange(mi.UInt32, width * height)
         row = idx // width
         col = idx - row * width
         pos = mi.Point2f((mi.Float(col) + 0.5) / width, (mi.Float(row) + 0.5) / height)
+        if hasattr(sensor, "beam_at"):
+            row = sensor.beam_at(pos)
         rays, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5), True)
         near = getattr(sensor, "near_clip", 0.0)
         near = float(near() if callable(near) else near)
@@ -147,13 +151,12 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
         return mi.Float(self.default_power)
 
     # --------------------------------------------------------------- shading
-    def _response(self, factor, cos_theta, distance, row, power):
-        gain = dr.gather(mi.Float, self.beam_gains,
-                         dr.minimum(row, dr.width(self.beam_gains) - 1))
-        d = dr.maximum(distance, 1e-4)
-        c = dr.clip(cos_theta, 0.0, 1.0)
-        cos_term = dr.select(c > 0, dr.power(c, self.angle_exponent), 0.0)
-        return gain * factor * power * cos_term / (dr.pi * dr.power(d, self.range_exponent))
+    def response(self, scene=None) -> LidarResponse:
+        """The sensor response this integrator renders with (see
+        :mod:`mi_invrgbl.physics.lidar_response`); ``P_e`` is the scene's
+        ``laser`` power if it holds one."""
+        power = self._laser_power(scene) if scene is not None else mi.Float(self.default_power)
+        return LidarResponse(self.range_exponent, self.angle_exponent, self.beam_gains, power)
 
     def render_beams(self, scene, rays, row, hit_list=None, near=0.0):
         """Channels (list of per-ray Floats, see CHANNELS) for ``rays``.
@@ -167,7 +170,7 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
         nodes = hitlib.gaussian_nodes(scene)
         if hit_list is None:
             hit_list = hitlib.trace(scene, rays, self.max_hits, self.min_transmittance, nodes)
-        power = self._laser_power(scene)
+        response = self.response(scene)
         g = hitlib.eval_gaussian_hits(nodes, rays, hit_list)
         w, t_after = hitlib.blend_weights(g)
         active = g.active
@@ -180,11 +183,7 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
         dist = g.t + dr.gather(mi.Float, near, ray_of_hit)
         row_hits = dr.gather(mi.UInt32, row, ray_of_hit)
         factor = brdf.lidar_return_factor(rho, tau, g.cos_theta, self.model, self.f0)
-        intensity_k = self._response(factor, g.cos_theta, dist, row_hits, power)
-        intensity = hitlib.composite(g, w, intensity_k)
-        alpha = hitlib.composite(g, w, mi.Float(1.0))
-        depth_sum = hitlib.composite(g, w, dist)
-        rho_sum = hitlib.composite(g, w, rho)
+        intensity_k = response(factor, g.cos_theta, dist, row_hits)
 
         # Opaque surface behind the Gaussians.
         si = hit_list.surface_interaction(rays)
@@ -192,12 +191,12 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
         s_factor, s_rho = hitlib.surface_lidar_material(scene, si, surf, self.model, self.f0)
         s_cos = dr.abs(mi.Frame3f.cos_theta(si.wi))
         s_dist = si.t + near
-        s_int = self._response(s_factor, s_cos, s_dist, row, power)
-        s_w = dr.select(surf, t_after, 0.0)
-        intensity += s_w * dr.select(surf, s_int, 0.0)
-        alpha += s_w
-        depth_sum += s_w * dr.select(surf, s_dist, 0.0)
-        rho_sum += s_w * dr.select(surf, s_rho, 0.0)
+        s_int = response(s_factor, s_cos, s_dist, row)
+        c = hitlib.composite_front_to_back(
+            g, w, t_after, {"intensity": intensity_k, "alpha": 1.0, "range": dist, "rho": rho},
+            {"intensity": dr.select(surf, s_int, 0.0), "alpha": dr.select(surf, 1.0, 0.0),
+             "range": dr.select(surf, s_dist, 0.0), "rho": dr.select(surf, s_rho, 0.0)})
+        intensity, alpha, depth_sum, rho_sum = c["intensity"], c["alpha"], c["range"], c["rho"]
 
         hit = alpha >= self.hit_threshold
         norm = dr.rcp(dr.maximum(alpha, 1e-8))

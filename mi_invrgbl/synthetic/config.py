@@ -29,6 +29,8 @@ class StreetConfig:
     frame_rate: float = 10.0    #: frames per second (times.txt)
     night: bool = True          #: also render the night images
     bsdf: str = "roughplastic"  #: roughplastic (Mitsuba's) | cooktorrance (the paper's model)
+    lidar: str = "hdl64"        #: hdl64 | vlp32 | os128 | rays:FILE (see :mod:`.sensors`)
+    intensity: str = "raw"      #: raw return strength | reflectivity (range-compensated)
 
     def validate(self) -> "StreetConfig":
         """Raise :class:`UserError` naming the first bad option."""
@@ -47,6 +49,12 @@ class StreetConfig:
             raise UserError("--step must lie in (0, 5] metres (got %s)" % self.step)
         if self.bsdf not in BSDFS:
             raise UserError("--bsdf must be one of %s (got %r)" % (", ".join(BSDFS), self.bsdf))
+        from .sensors import load_rays, parse_lidar
+        kind, path = parse_lidar(self.lidar)
+        if path is not None:
+            load_rays(path)
+        if self.intensity not in ("raw", "reflectivity"):
+            raise UserError("--intensity must be raw or reflectivity (got %r)" % self.intensity)
         if self.seed < 0:
             raise UserError("--seed must be non-negative (got %s)" % self.seed)
         return self

@@ -32,7 +32,7 @@ import numpy as np
 
 from ..errors import UserError
 from . import (config as config_mod, groundtruth, labels, layout as layout_mod, lidar_sim,
-               lights, materials, render, scene_xml, trajectory, writers)
+               lights, materials, render, scene_xml, sensors, trajectory, writers)
 
 KINDS = ("time_a", "time_b", "night")
 
@@ -95,7 +95,7 @@ def _write_assets(root, cfg, lay, rng_tex, light_info, cams, car_poses):
         json.dump(light_info, f, indent=1)
 
 
-def _write_kitti(root, cfg, K, cams, egos, car_poses, parked):
+def _write_kitti(root, cfg, K, cams, egos, car_poses, parked, pattern):
     seq = os.path.join(root, "sequences", "00")
     for d in ("image_2", "velodyne"):
         os.makedirs(os.path.join(seq, d))
@@ -116,20 +116,23 @@ def _write_kitti(root, cfg, K, cams, egos, car_poses, parked):
             "world_from_parked_car": np.asarray(parked).tolist(),
             "car_hwl": list(layout_mod.CAR_HWL),
             "K": K.tolist(), "width": cfg.width, "height": cfg.height, "fov_x_deg": cfg.fov,
-            "lidar": {"beams": cfg.beams, "azimuth_steps": cfg.azimuth_steps,
-                      "elevation_deg": [2.0, -24.9], "far_range": lidar_sim.FAR_RANGE,
+            "lidar": {"beams": pattern.n_beams, "azimuth_steps": cfg.azimuth_steps,
+                      "elevation_deg": [float(pattern.elevations_deg[0]),
+                                        float(pattern.elevations_deg[-1])],
+                      "intensity": cfg.intensity, **pattern.to_json(),
+                      "far_range": lidar_sim.FAR_RANGE,
                       "min_range": lidar_sim.MIN_RANGE, "power": lidar_sim.POWER,
                       "intensity_scale": lidar_sim.INTENSITY_SCALE,
                       "range_noise": lidar_sim.RANGE_NOISE,
                       "intensity_noise": lidar_sim.INTENSITY_NOISE,
                       "drop_rate": lidar_sim.DROP_RATE,
-                      "azimuth": "phi_j = pi - 2 pi (j + 0.5) / W, row 0 = +2 deg"},
+                      "azimuth": "phi_j = pi - 2 pi (j + 0.5) / W, row 0 = top beam"},
             "config": vars(cfg)}
     with open(os.path.join(root, "gt", "trajectory.json"), "w") as f:
         json.dump(info, f, indent=1)
 
 
-def _ground_truth(root, cfg, lay, cams, egos, car_poses, sun):
+def _ground_truth(root, cfg, lay, cams, egos, car_poses, sun, pattern):
     import mitsuba as mi
     gt = os.path.join(root, "gt")
     scene = mi.load_file(os.path.join(gt, "scene_time_a.xml"))
@@ -139,7 +142,6 @@ def _ground_truth(root, cfg, lay, cams, egos, car_poses, sun):
     lidar_dir = os.path.join(gt, "lidar")
     os.makedirs(map_dir)
     os.makedirs(lidar_dir)
-    directions = trajectory.lidar_directions(cfg.beams, cfg.azimuth_steps)
     seq = os.path.join(root, "sequences", "00", "velodyne")
     for i in range(cfg.frames):
         poser.set_frame(i, cams[i] @ trajectory.KITTI_FROM_MITSUBA)
@@ -147,7 +149,8 @@ def _ground_truth(root, cfg, lay, cams, egos, car_poses, sun):
         for name, data in maps.items():
             writers.write_exr(os.path.join(map_dir, "%06d_%s.exr" % (i, name)), data)
         rng = np.random.default_rng([cfg.seed, i, 7])
-        scan = lidar_sim.sweep(scene, table, trajectory.world_from_velo(egos[i]), directions, rng)
+        scan = lidar_sim.sweep(scene, table, trajectory.world_from_velo(egos[i]), pattern, rng,
+                               cfg.intensity)
         writers.write_velodyne(os.path.join(seq, "%06d.bin" % i), scan["points"])
         image = np.stack([scan["intensity"], scan["range"], scan["hit"]], axis=-1)
         writers.write_exr(os.path.join(lidar_dir, "%06d.exr" % i), image,
@@ -178,11 +181,17 @@ def generate_street(out: str, cfg: "config_mod.StreetConfig", log=print) -> dict
         os.makedirs(os.path.join(tmp, "gt"))
         steps.run("meshes, textures, scenes", _write_assets, tmp, cfg, lay,
                   np.random.default_rng([cfg.seed, 1]), light_info, cams, car_poses)
+        pattern = sensors.make_pattern(cfg.lidar, cfg.beams, cfg.azimuth_steps, cfg.seed)
+        if pattern.rays_file is not None:
+            # Keep the pattern with the street (the user's file is only read).
+            np.save(os.path.join(tmp, "gt", "lidar_rays.npy"),
+                    np.hstack([pattern.origins, pattern.directions, pattern.beam[:, None]]))
+            pattern.rays_file = "gt/lidar_rays.npy"
         steps.run("KITTI calib, poses, labels", _write_kitti, tmp, cfg, K, cams, egos,
-                  car_poses, parked)
+                  car_poses, parked, pattern)
         steps.run("ground-truth maps + LiDAR", _ground_truth, tmp, cfg, lay, cams, egos,
-                  car_poses, sun)
-        sensors = cams @ trajectory.KITTI_FROM_MITSUBA
+                  car_poses, sun, pattern)
+        cam_sensors = cams @ trajectory.KITTI_FROM_MITSUBA
         gt = os.path.join(tmp, "gt")
         for k, kind in enumerate(KINDS):
             if kind == "night" and not cfg.night:
@@ -191,7 +200,7 @@ def generate_street(out: str, cfg: "config_mod.StreetConfig", log=print) -> dict
             headlights = light_info["night"]["headlights"] if kind == "night" else ()
             steps.run("render %s (%d spp)" % (kind, cfg.spp), render.render_sequence,
                       os.path.join(gt, "scene_%s.xml" % kind), os.path.join(gt, kind),
-                      sensors, car_poses, headlights, cfg.spp, cfg.seed * 3 + k, png_dir=png)
+                      cam_sensors, car_poses, headlights, cfg.spp, cfg.seed * 3 + k, png_dir=png)
         os.rename(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

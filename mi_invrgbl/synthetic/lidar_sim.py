@@ -7,8 +7,12 @@ pose; the hit's true LiDAR albedo and roughness give the return through
     I = (rho_lidar + F0 tau^2 min(1, 2 cos^2) / (4 cos^2 (cos^2 (tau^2 - 1) + 1)^2))
         * P_e cos / (pi d^2)
 
-The sweep is instantaneous (no motion during the spin). Stored intensities
-are ``clip(I * INTENSITY_SCALE * (1 + noise), 0, 1)``.
+The sweep is instantaneous (no motion during the spin). Stored raw
+intensities are ``clip(g_beam I * INTENSITY_SCALE * (1 + noise), 0, 1)``;
+range-compensated ones (``--intensity reflectivity``) are
+``clip(g_beam I pi d^2 / P_e (1 + noise), 0, 1)``. The sensors
+(:mod:`.sensors`) set the beam gains ``g_beam`` and whether weak returns
+drop more often.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ import numpy as np
 import mitsuba as mi
 
 from ..physics import brdf
+from . import sensors
 from .groundtruth import oriented_normals
 
 #: Emitted power of the laser (arbitrary units).
@@ -34,19 +39,22 @@ FAR_RANGE = 80.0            #: no return beyond this range (metres)
 MIN_RANGE = 0.5
 
 
-def sweep(scene, table, world_from_velo: np.ndarray, directions: np.ndarray,
-          rng: np.random.Generator) -> dict:
-    """One sweep: range image channels (beams, azimuths) and the KITTI point list.
+def sweep(scene, table, world_from_velo: np.ndarray, pattern, rng: np.random.Generator,
+          intensity: str = "raw") -> dict:
+    """One sweep of ``pattern`` (:class:`~mi_invrgbl.synthetic.sensors.SensorPattern`).
 
-    ``directions`` are unit rays in the sensor frame, (beams, azimuths, 3).
-    Returns ``intensity``, ``range``, ``hit`` images, ``points`` (N, 4) in the
-    sensor frame and the noise-free ``clean_range`` / ``clean_intensity``.
+    ``intensity`` is ``raw`` (return strength, falling as ``cos / d^2``) or
+    ``reflectivity`` (range-compensated, as KITTI's HDL-64E reports:
+    ``g_beam (rho + pi f_s) cos``). Returns the ground-truth range image
+    channels ``intensity``, ``range``, ``hit`` (``pattern.image_shape``),
+    ``points`` (N, 4) in the sensor frame in the pattern's storage order, and
+    ``part`` (mesh hit per image pixel, -1 for none).
     """
-    beams, steps, _ = directions.shape
-    local = directions.reshape(-1, 3)
+    local = pattern.directions
     R, t = world_from_velo[:3, :3], world_from_velo[:3, 3]
     world_d = local @ R.T
-    ray = mi.Ray3f(mi.Point3f(np.tile(t.astype(np.float32), (len(local), 1)).T),
+    world_o = pattern.origins @ R.T + t
+    ray = mi.Ray3f(mi.Point3f(world_o.astype(np.float32).T),
                    mi.Vector3f(world_d.astype(np.float32).T))
     si = scene.ray_intersect(ray)
     g = table.lookup(si)
@@ -58,18 +66,33 @@ def sweep(scene, table, world_from_velo: np.ndarray, directions: np.ndarray,
                                           mi.Float(cos.astype(np.float32)),
                                           mi.Float(dist.astype(np.float32)), power=POWER),
                      dtype=np.float64)
+    gain = pattern.beam_gains[pattern.beam]
+    strength = gain * clean * INTENSITY_SCALE
     # Draw every random number for every ray, so the noise of one ray does not
     # depend on which other rays hit (stable under scene edits).
     range_noise = rng.normal(0.0, RANGE_NOISE, len(local))
     gain_noise = rng.normal(0.0, INTENSITY_NOISE, len(local))
-    dropped = rng.random(len(local)) < DROP_RATE
+    u = rng.random(len(local))
+    p_drop = sensors.drop_probability(strength, DROP_RATE) if pattern.weak_drop else DROP_RATE
+    dropped = u < p_drop
     hit = g["hit"] & (g["t"] >= MIN_RANGE) & (g["t"] <= FAR_RANGE) & ~dropped
     rng_m = np.where(hit, g["t"] + range_noise, 0.0)
-    intensity = np.where(hit, np.clip(clean * INTENSITY_SCALE * (1 + gain_noise), 0.0, 1.0), 0.0)
-    points = np.concatenate([local[hit] * rng_m[hit, None], intensity[hit, None]], axis=1)
-    shape = (beams, steps)
-    return {"intensity": intensity.reshape(shape).astype(np.float32),
-            "range": rng_m.reshape(shape).astype(np.float32),
-            "hit": hit.reshape(shape).astype(np.float32),
+    if intensity == "reflectivity":
+        value = gain * clean * math.pi * dist ** 2 / POWER
+    else:
+        value = strength
+    inten = np.where(hit, np.clip(value * (1 + gain_noise), 0.0, 1.0), 0.0)
+    points = np.concatenate([pattern.origins[hit] + local[hit] * rng_m[hit, None],
+                             inten[hit, None]], axis=1)
+    shape = tuple(pattern.image_shape)
+    size = shape[0] * shape[1]
+
+    def image(values, fill=0.0, dtype=np.float32):
+        out = np.full(size, fill, dtype)
+        out[pattern.image_index] = values
+        return out.reshape(shape)
+
+    return {"intensity": image(inten), "range": image(rng_m),
+            "hit": image(hit.astype(np.float32)),
             "points": points.astype(np.float32),
-            "part": np.where(hit, g["part"], -1).reshape(shape)}
+            "part": image(np.where(hit, g["part"], -1), -1, np.int64)}

@@ -13,35 +13,27 @@ import os
 import numpy as np
 import mitsuba as mi
 
-from . import scene_xml, writers
+from ..scene.posing import place
+from . import writers
 
 
 class FramePoser:
-    """Moves the dynamic parts of a loaded street scene to a given frame."""
+    """Moves the dynamic parts of a loaded street scene to a given frame
+    (with :func:`mi_invrgbl.scene.posing.place`)."""
 
     def __init__(self, scene, car_poses: np.ndarray, headlights=()):
         self.scene = scene
         self.params = mi.traverse(scene)
-        self.car_poses = car_poses
-        self.headlights = list(headlights)
-        # The car was loaded at its frame-0 pose: recover its local vertices
-        # from the loaded ones instead of assuming the PLY's vertex order.
-        world0 = np.array(self.params["moving_car.vertex_positions"], dtype=np.float64).reshape(-1, 3)
-        inv0 = np.linalg.inv(car_poses[0])
-        self.car_local = world0 @ inv0[:3, :3].T + inv0[:3, 3]
+        self.car_poses = np.asarray(car_poses, np.float64)
+        # The car and its headlights were loaded at the car's frame-0 pose.
+        self.moving = ["moving_car"] + ["headlight_%d" % i for i in range(len(headlights))
+                                        if "headlight_%d.to_world" % i in self.params]
 
     def set_frame(self, frame: int, sensor_to_world: np.ndarray | None = None) -> None:
-        pose = self.car_poses[frame]
-        world = self.car_local @ pose[:3, :3].T + pose[:3, 3]
-        self.params["moving_car.vertex_positions"] = mi.Float(world.astype(np.float32).reshape(-1))
+        poses = {name: self.car_poses[frame] for name in self.moving}
         if sensor_to_world is not None:
-            self.params["sensor.to_world"] = mi.Transform4f(mi.ScalarMatrix4f(sensor_to_world))
-        for i, light in enumerate(self.headlights):
-            key = "headlight_%d.to_world" % i
-            if key in self.params:
-                m = scene_xml.headlight_to_world(pose, light)
-                self.params[key] = mi.Transform4f(mi.ScalarMatrix4f(m))
-        self.params.update()
+            poses["sensor"] = sensor_to_world
+        place(self.scene, poses, {name: self.car_poses[0] for name in self.moving}, self.params)
 
 
 def render_sequence(xml_path: str, out_dir: str, sensor_poses: np.ndarray,

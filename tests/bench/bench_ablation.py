@@ -28,6 +28,11 @@ fit wall time from its log) and writes it to ``DIR/ablation.md``.
 
 from __future__ import annotations
 
+import sys as _sys, pathlib as _pathlib
+_sys.path.insert(0, str(_pathlib.Path(__file__).resolve().parents[1]))
+import variant_choice  # noqa: E402  (--variant NAME, default $MI_INVRGBL_VARIANT or llvm_ad_rgb)
+variant_choice.from_argv()
+
 import argparse
 import json
 import os

@@ -65,6 +65,11 @@ seconds apart, and move less.
 
 from __future__ import annotations
 
+import sys as _sys, pathlib as _pathlib
+_sys.path.insert(0, str(_pathlib.Path(__file__).resolve().parents[1]))
+import variant_choice  # noqa: E402  (--variant NAME, default $MI_INVRGBL_VARIANT or llvm_ad_rgb)
+variant_choice.from_argv()
+
 import argparse
 import json
 import math
@@ -85,8 +90,6 @@ TARGET = 0.1
 
 def _setup():
     import mitsuba as mi
-    if mi.variant() is None or not mi.variant().startswith("llvm_ad"):
-        mi.set_variant("llvm_ad_rgb")
     import mi_invrgbl  # noqa: F401  (registers the plugins)
     tests = os.path.join(ROOT, "tests")
     if tests not in sys.path:
@@ -169,7 +172,7 @@ class TraceCounter:
     """Counts the rays that go through ``hits.trace`` (all tracing goes there)."""
 
     def __init__(self):
-        from mi_invrgbl.plugins import hits
+        from mi_invrgbl.physics import hits
         self.module, self.original = hits, hits.trace
         self.rays = 0
         self.calls = 0

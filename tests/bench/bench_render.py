@@ -34,6 +34,11 @@ table shows the peak after the row and how much the row raised it
 
 from __future__ import annotations
 
+import sys as _sys, pathlib as _pathlib
+_sys.path.insert(0, str(_pathlib.Path(__file__).resolve().parents[1]))
+import variant_choice  # noqa: E402  (--variant NAME, default $MI_INVRGBL_VARIANT or llvm_ad_rgb)
+variant_choice.from_argv()
+
 import argparse
 import math
 import os
@@ -51,8 +56,6 @@ FWD_TARGET, BWD_TARGET = 1.5, 3.0
 
 
 def _setup_variant():
-    if mi.variant() is None or not mi.variant().startswith("llvm_ad"):
-        mi.set_variant("llvm_ad_rgb")
     import mi_invrgbl  # noqa: F401  (registers the plugins)
 
 
@@ -223,8 +226,8 @@ def lidar_rays(scene, integrator):
 
 def shadow_rays(scene, integrator):
     """The visibility rays of ``invrgbl``'s lighting precompute and their cap."""
-    from mi_invrgbl.plugins import hits as hitlib
-    from mi_invrgbl.plugins import lighting as L
+    from mi_invrgbl.physics import hits as hitlib
+    from mi_invrgbl.physics import lighting as L
     nodes = hitlib.gaussian_nodes(scene)
     with dr.suspend_grad():
         # As GaussianLighting does, without filling (i.e. tracing) a cache.
@@ -245,8 +248,8 @@ def shadow_rays(scene, integrator):
 
 def fill_lighting_cache(scene, integrator):
     """Fill ``invrgbl``'s lighting cache with visibility 1 without tracing it."""
-    from mi_invrgbl.plugins import hits as hitlib
-    from mi_invrgbl.plugins import lighting as L
+    from mi_invrgbl.physics import hits as hitlib
+    from mi_invrgbl.physics import lighting as L
     nodes = hitlib.gaussian_nodes(scene)
     lights = L.point_lights(scene)
     G = sum(node.count for node in nodes)
@@ -261,7 +264,7 @@ def fill_lighting_cache(scene, integrator):
 
 
 def count_hits(scene, rays, max_hits, min_transmittance=1e-3):
-    from mi_invrgbl.plugins import hits as hitlib
+    from mi_invrgbl.physics import hits as hitlib
     h = hitlib.trace(scene, rays, max_hits, min_transmittance)
     return int(dr.sum(h.count)[0])
 

@@ -11,6 +11,11 @@ observed image. Where the sky's specular reflection alone reaches the
 observed shadow, the fit can only explain the shadow with near-zero albedo.
 """
 
+import sys as _sys, pathlib as _pathlib
+_sys.path.insert(0, str(_pathlib.Path(__file__).resolve().parents[1]))
+import variant_choice  # noqa: E402  (--variant NAME, default $MI_INVRGBL_VARIANT or llvm_ad_rgb)
+variant_choice.from_argv()
+
 import json
 import os
 import sys

@@ -11,6 +11,11 @@ Prints the share of truly shadowed pixels modelled as sunlit (>= 0.5) and of
 truly sunlit pixels modelled as shadowed.
 """
 
+import sys as _sys, pathlib as _pathlib
+_sys.path.insert(0, str(_pathlib.Path(__file__).resolve().parents[1]))
+import variant_choice  # noqa: E402  (--variant NAME, default $MI_INVRGBL_VARIANT or llvm_ad_rgb)
+variant_choice.from_argv()
+
 import os
 import sys
 
@@ -21,7 +26,7 @@ import mitsuba as mi
 from street_truth import ground_truth, source_number, truth_map
 import drjit as dr  # noqa: E402
 import mi_invrgbl  # noqa: E402,F401
-from mi_invrgbl.plugins import hits as hitlib  # noqa: E402
+from mi_invrgbl.physics import hits as hitlib  # noqa: E402
 from mi_invrgbl.physics.lighting import GaussianLighting, LightingCache  # noqa: E402
 
 

@@ -10,6 +10,11 @@ the albedo; the same ratio for the observed image (radiance / true albedo)
 shows how dark the shadows are to begin with.
 """
 
+import sys as _sys, pathlib as _pathlib
+_sys.path.insert(0, str(_pathlib.Path(__file__).resolve().parents[1]))
+import variant_choice  # noqa: E402  (--variant NAME, default $MI_INVRGBL_VARIANT or llvm_ad_rgb)
+variant_choice.from_argv()
+
 import os
 import sys
 

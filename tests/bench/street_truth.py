@@ -5,6 +5,11 @@ folder, its per-frame maps, the observed images and the fitted maps.
     truth_map(gt, "sun_visibility", n)     # (H, W) or (H, W, 3) float32
 """
 
+import sys as _sys, pathlib as _pathlib
+_sys.path.insert(0, str(_pathlib.Path(__file__).resolve().parents[1]))
+import variant_choice  # noqa: E402  (--variant NAME, default $MI_INVRGBL_VARIANT or llvm_ad_rgb)
+variant_choice.from_argv()
+
 import json
 import os
 import sys
@@ -13,8 +18,12 @@ import numpy as np
 import cv2
 import mitsuba as mi
 
-mi.set_variant("llvm_ad_rgb")
+<<<<<<< HEAD
 from mi_invrgbl.metrics import srgb_to_linear  # noqa: E402
+=======
+mi.set_variant("llvm_ad_rgb")
+from mi_invrgbl.eval.metrics import srgb_to_linear  # noqa: E402
+>>>>>>> scene
 
 LUM = np.array([0.2126, 0.7152, 0.0722])
 

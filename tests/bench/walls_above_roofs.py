@@ -11,6 +11,11 @@ sky, the second the real facade. Ground-truth meshes are mapped into the
 scene's world by the first frame's camera pose.
 """
 
+import sys as _sys, pathlib as _pathlib
+_sys.path.insert(0, str(_pathlib.Path(__file__).resolve().parents[1]))
+import variant_choice  # noqa: E402  (--variant NAME, default $MI_INVRGBL_VARIANT or llvm_ad_rgb)
+variant_choice.from_argv()
+
 import glob
 import os
 import sys
@@ -19,9 +24,9 @@ import numpy as np
 import trimesh
 
 import street_truth  # noqa: F401  (sets the Mitsuba variant)
-from mi_invrgbl.commands.eval import source_number  # noqa: E402
+from mi_invrgbl.eval.ground_truth import source_number  # noqa: E402
 from mi_invrgbl.physics.gaussian_ply import read_ply  # noqa: E402
-from mi_invrgbl.scene_graph import Frames  # noqa: E402
+from mi_invrgbl.scene.frames import Frames  # noqa: E402
 
 
 def gt_from_scene(root, gt_dir):

@@ -1,4 +1,14 @@
-"""Editing Mitsuba scene XML files: the form every application's edit takes.
+"""Mitsuba scene XML: the one builder and editor of scene files.
+
+Every scene file the package writes goes through this module: the imported
+scene (:mod:`.imported`), the fitted scene (``fit``), the applications'
+edits and the synthetic street's files. :class:`SceneDoc` holds a file as an
+element tree; the element makers (:func:`element`, :func:`param`,
+:func:`rgb`, :func:`vector`, :func:`transform`) and the node makers for this
+package's plugins and Mitsuba's sensors (:func:`perspective_sensor`,
+:func:`lidar_sensor`, :func:`shsun_emitter`, :func:`gaussians_shape`,
+:func:`spot_emitter`, :func:`integrator`) build its nodes, and
+:meth:`SceneDoc.to_string` prints every file the same way.
 
 Each application (relight, night, insert, lidar) is an edit of the scene's
 XML: emitters replaced or added, a shape added, the integrator's options
@@ -44,8 +54,19 @@ class SceneDoc:
 
     # ------------------------------------------------------------------ I/O
     @staticmethod
-    def load(path: str) -> "SceneDoc":
-        """Parse ``path``; one :class:`UserError` naming the file if that fails."""
+    def new(path: str, version: str = "3.0.0") -> "SceneDoc":
+        """An empty scene to be written to ``path``."""
+        root = element("scene")
+        root.set("version", version)
+        return SceneDoc(root, path)
+
+    @staticmethod
+    def load(path: str, resolve_paths: bool = True) -> "SceneDoc":
+        """Parse ``path``; one :class:`UserError` naming the file if that fails.
+
+        With ``resolve_paths`` (the default) file paths inside become absolute;
+        without, they are kept as written (a copy written beside its PLYs).
+        """
         if not os.path.isfile(path):
             raise UserError("%s: scene file not found" % path)
         parser = ET.XMLParser(target=ET.TreeBuilder(insert_comments=True))
@@ -57,14 +78,15 @@ class SceneDoc:
             raise UserError("%s: not a Mitsuba scene (root element is <%s>, not <scene>)"
                             % (path, root.tag))
         doc = SceneDoc(root, path)
-        doc._map_paths(lambda value: _absolute(value, doc.folder))
+        if resolve_paths:
+            doc._map_paths(lambda value: _absolute(value, doc.folder))
         return doc
 
     def copy(self) -> "SceneDoc":
         return SceneDoc(copy.deepcopy(self.root), self.path)
 
     def to_string(self, folder: str | None = None) -> str:
-        """The XML text, with file paths relative to ``folder`` (default: absolute)."""
+        """The XML text, with file paths relative to ``folder`` (default: as held)."""
         root = copy.deepcopy(self.root)
         if folder is not None:
             folder = os.path.abspath(folder)
@@ -86,8 +108,10 @@ class SceneDoc:
         folder = os.path.dirname(os.path.abspath(path))
         os.makedirs(folder, exist_ok=True)
         text = self.to_string(folder)
-        with open(path, "w") as f:
+        tmp = path + ".part"
+        with open(tmp, "w") as f:
             f.write(text)
+        os.replace(tmp, path)
         written = [path]
         if original is not None:
             before = original.to_string(folder).splitlines(keepends=True)
@@ -221,10 +245,11 @@ def _fmt(v) -> str:
 
 
 def param(kind: str, name: str, value) -> ET.Element:
-    """``<float|integer|string|boolean name=... value=...>``."""
+    """``<float|integer|string|boolean name=... value=...>`` (a string value,
+    e.g. ``"$spp"`` or a number already formatted, is written as given)."""
     e = ET.Element(kind)
     e.set("name", name)
-    if kind == "float":
+    if kind == "float" and not isinstance(value, str):
         value = _fmt(value)
     elif kind == "boolean":
         value = "true" if value else "false"
@@ -253,20 +278,35 @@ def point(name: str, value) -> ET.Element:
     return e
 
 
+def matrix_text(matrix) -> str:
+    """A 4x4 matrix as Mitsuba's ``<matrix value=...>`` text (row-major, 9 digits)."""
+    return " ".join("%.9g" % v for v in np.asarray(matrix, np.float64).reshape(-1))
+
+
+def numbers_text(values, digits: int = 7) -> str:
+    """Numbers as one space-separated string (``sh``, ``beam_gains``)."""
+    return " ".join("%.*g" % (digits, float(v)) for v in np.asarray(values, np.float64).ravel())
+
+
 def transform(matrix, name: str = "to_world") -> ET.Element:
     e = ET.Element("transform")
     e.set("name", name)
     m = ET.SubElement(e, "matrix")
-    m.set("value", " ".join("%.9g" % v for v in np.asarray(matrix, np.float64).reshape(-1)))
+    m.set("value", matrix_text(matrix))
     return e
+
+
+def set_child(parent: ET.Element, child: ET.Element) -> None:
+    """Put ``child`` under ``parent``, replacing the one with the same ``name``."""
+    for old in list(parent):
+        if old.get("name") == child.get("name"):
+            parent.remove(old)
+    parent.append(child)
 
 
 def set_child_param(parent: ET.Element, kind: str, name: str, value) -> None:
     """Set (replace or add) the parameter ``name`` of ``parent``."""
-    for child in list(parent):
-        if child.get("name") == name:
-            parent.remove(child)
-    parent.append(param(kind, name, value))
+    set_child(parent, param(kind, name, value))
 
 
 def child_param(parent: ET.Element, name: str):
@@ -275,3 +315,108 @@ def child_param(parent: ET.Element, name: str):
         if child.get("name") == name:
             return child.get("value")
     return None
+
+
+# --------------------------------------------------------------- node makers
+
+
+def default(name: str, value) -> ET.Element:
+    """``<default name=... value=...>``: a ``$name`` parameter ``-D`` can set."""
+    e = ET.Element("default")
+    e.set("name", name)
+    e.set("value", str(value))
+    return e
+
+
+def sampler(sample_count, seed=None) -> ET.Element:
+    """``independent`` sampler. Give every sensor its own ``seed``: Mitsuba
+    3.9.1 merges XML nodes with identical properties, so two sensors with the
+    same pose would otherwise become one object with one id."""
+    children = [param("integer", "sample_count", sample_count)]
+    if seed is not None:
+        children.append(param("integer", "seed", seed))
+    return element("sampler", "independent", None, children)
+
+
+def film(width, height, pixel_format=None) -> ET.Element:
+    children = [param("integer", "width", width), param("integer", "height", height),
+                element("rfilter", "box")]
+    if pixel_format:
+        children.append(param("string", "pixel_format", pixel_format))
+    return element("film", "hdrfilm", None, children)
+
+
+def perspective_sensor(ident, fov, to_world, width, height, spp, seed=None,
+                       principal_point=(0.0, 0.0), near_clip=0.1, far_clip=10000.0,
+                       pixel_format=None) -> ET.Element:
+    """A ``perspective`` sensor, ``fov`` in degrees along x, principal point
+    offsets in film sizes (Mitsuba's convention)."""
+    children = [param("float", "fov", "%.9g" % fov), param("string", "fov_axis", "x")]
+    if any(principal_point):
+        children += [param("float", "principal_point_offset_x", "%.9g" % principal_point[0]),
+                     param("float", "principal_point_offset_y", "%.9g" % principal_point[1])]
+    children += [param("float", "near_clip", "%g" % near_clip),
+                 param("float", "far_clip", "%g" % far_clip), transform(to_world),
+                 sampler(spp, seed), film(width, height, pixel_format)]
+    return element("sensor", "perspective", ident, children)
+
+
+def lidar_sensor(ident, elevations_deg, azimuth_steps, to_world, far_clip=120.0,
+                 seed=None) -> ET.Element:
+    """The package's ``lidar`` sensor: one film row per beam elevation."""
+    elev = ", ".join("%.6f" % e for e in elevations_deg)
+    return element("sensor", "lidar", ident, [
+        param("string", "elevations", elev), param("float", "far_clip", "%g" % far_clip),
+        transform(to_world), sampler(1, seed), film(azimuth_steps, len(elevations_deg))])
+
+
+def shsun_emitter(ident, sh, order, sun_direction, sun_irradiance) -> ET.Element:
+    """The package's ``shsun`` emitter: ``sh`` holds ``(order + 1)^2`` RGB rows."""
+    sh = np.asarray(sh, np.float64).reshape(-1, 3)[: (order + 1) ** 2]
+    return element("emitter", "shsun", ident, [
+        param("integer", "order", order), param("string", "sh", numbers_text(sh)),
+        vector("sun_direction", sun_direction), rgb("sun_irradiance", sun_irradiance)])
+
+
+def gaussians_shape(ident, filename, to_world=None) -> ET.Element:
+    children = [param("string", "filename", filename)]
+    if to_world is not None:
+        children.append(transform(to_world))
+    return element("shape", "gaussians", ident, children)
+
+
+def spot_to_world(position, direction) -> np.ndarray:
+    """A frame whose +z (a spot light's axis) points along ``direction``, placed at ``position``."""
+    z = np.asarray(direction, dtype=np.float64)
+    z = z / np.linalg.norm(z)
+    helper = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x, y, z, position
+    return m
+
+
+def spot_emitter(ident, intensity, to_world, cutoff_angle, beam_width) -> ET.Element:
+    return element("emitter", "spot", ident, [
+        rgb("intensity", intensity), transform(to_world),
+        param("float", "cutoff_angle", "%g" % cutoff_angle),
+        param("float", "beam_width", "%g" % beam_width)])
+
+
+def integrator(type_: str, **params) -> ET.Element:
+    """An integrator with parameters typed from their Python values (bool ->
+    boolean, int -> integer, float -> float, str -> string)."""
+    children = []
+    for name, value in params.items():
+        if isinstance(value, bool):
+            kind = "boolean"
+        elif isinstance(value, (int, np.integer)):
+            kind = "integer"
+        elif isinstance(value, (float, np.floating)):
+            kind, value = "float", "%.6g" % value
+        else:
+            kind = "string"
+        children.append(param(kind, name, value))
+    return element("integrator", type_, None, children)

@@ -1,12 +1,14 @@
-"""The per-frame side of an imported scene: ``frames.json`` and ``set_frame``.
+"""``frames.json``: the per-frame records of an imported scene.
 
-See ``docs/scene_format.md`` for the files. This module reads (and writes)
-``frames.json`` and places dynamic objects for a frame::
+See ``docs/scene_format.md`` for the files. This module reads, checks and
+writes ``frames.json``; :func:`mi_invrgbl.scene.posing.set_frame` places the
+dynamic objects for a frame::
 
     import mitsuba as mi
     mi.set_variant("llvm_ad_rgb")
     import mi_invrgbl
-    from mi_invrgbl.scene_graph import Frames, set_frame
+    from mi_invrgbl.scene.frames import Frames
+    from mi_invrgbl.scene.posing import set_frame
 
     scene = mi.load_file("DIR/scene.xml")
     frames = Frames.load("DIR/scene.xml")      # or DIR/frames.json or DIR
@@ -39,29 +41,24 @@ Records (all paths resolved to absolute ``Path`` objects; matrices are
     (Path), ``extra``. Object frame: origin at the box centre, x forward
     (along the length), y left, z up.
 
-``set_frame(scene, frames, i)`` moves every dynamic object's Gaussians
-(shape id = object name) from where they are now to their pose at frame
-``i``: the shapes' ``data`` (centres, rotations) and ``normal`` parameters
-are transformed in place by ``pose_i @ inv(pose_now)``, so parameter edits
-made in between (an optimiser step) are kept. The pose "now" is tracked per
-scene, starting at frame 0's pose (the ``to_world`` written in the XML). An
-object missing from the scene (removed by editing the XML) is skipped; a
-frame that lists no pose for an object leaves it where it is. Returns
-``(camera_sensor, lidar_sensor)`` of frame ``i`` (``None`` where the scene
-lacks one).
+Every number read must be finite, and a record that is not is refused with
+one :class:`~mi_invrgbl.errors.UserError` naming the file and the entry.
+Writing refuses NaN and infinity as well (standard JSON has neither, and
+Python's ``json`` would otherwise write the non-standard ``NaN``):
+:func:`write_json` is the one writer of the scene's JSON files.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 import json
+import math
 import os
 from pathlib import Path
-import weakref
 
 import numpy as np
 
-from .errors import UserError
+from ..errors import UserError
 
 FORMAT = "mi-invrgbl-frames/1"
 #: Mitsuba camera (x left, y up, z forward) from dataset camera (x right, y down, z forward)
@@ -76,6 +73,66 @@ def _matrix(value, where: str) -> np.ndarray:
     if m.shape != (4, 4) or not np.all(np.isfinite(m)):
         raise UserError(f"{where}: not a finite 4x4 matrix (shape {m.shape})")
     return m
+
+
+def _number(value, where: str) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise UserError(f"{where}: not a number ({value!r})") from None
+    if not math.isfinite(v):
+        raise UserError(f"{where}: not a finite number ({value!r})")
+    return v
+
+
+def _reject_constant(name):
+    """``json.loads`` hook: Python reads NaN / Infinity, standard JSON has neither."""
+    raise ValueError(f"non-standard JSON constant {name}")
+
+
+def _non_finite(value, where: str):
+    """Where in a JSON-bound value a NaN or infinity sits (None if nowhere)."""
+    if isinstance(value, dict):
+        for k, v in value.items():
+            found = _non_finite(v, f"{where}.{k}")
+            if found:
+                return found
+    elif isinstance(value, (list, tuple)):
+        for k, v in enumerate(value):
+            found = _non_finite(v, f"{where}[{k}]")
+            if found:
+                return found
+    elif isinstance(value, (float, np.floating)) and not math.isfinite(float(value)):
+        return f"{where} = {float(value)}"
+    return None
+
+
+def write_json(path, data, indent=1) -> Path:
+    """Write ``data`` as standard JSON to ``path`` atomically (temp file, then
+    rename). NaN or infinity anywhere is refused with one error naming the
+    file and the entry, and nothing is written."""
+    path = Path(path)
+    where = _non_finite(data, path.name)
+    if where is not None:
+        raise UserError(f"{path}: refusing to write a non-finite number ({where})")
+    text = json.dumps(data, indent=indent, allow_nan=False, default=_json_default)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".part")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+    return path
+
+
+def _json_default(value):
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.floating):
+        return float(value)
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
 
 
 def _list(m) -> list:
@@ -210,8 +267,8 @@ class Frames:
     def load(cls, path) -> "Frames":
         jpath = cls.find(path)
         try:
-            data = json.loads(jpath.read_text())
-        except json.JSONDecodeError as exc:
+            data = json.loads(jpath.read_text(), parse_constant=_reject_constant)
+        except (json.JSONDecodeError, ValueError) as exc:
             raise UserError(f"{jpath}: not valid JSON ({exc})") from None
         if not isinstance(data, dict) or data.get("format") != FORMAT:
             raise UserError(f"{jpath}: not a {FORMAT} file "
@@ -226,25 +283,29 @@ class Frames:
         try:
             c = dict(data["camera"])
             camera = CameraInfo(int(c.pop("width")), int(c.pop("height")),
-                                float(c.pop("fx")), float(c.pop("fy")),
-                                float(c.pop("cx")), float(c.pop("cy")), extra=c)
+                                *(_number(c.pop(k), f"{jpath}, camera.{k}")
+                                  for k in ("fx", "fy", "cx", "cy")), extra=c)
+            if camera.width < 1 or camera.height < 1 or camera.fx <= 0:
+                raise UserError(f"{jpath}: camera: width, height and fx must be positive")
             li = dict(data["lidar"])
             lidar = LidarInfo(int(li.pop("beams")), int(li.pop("azimuth_steps")),
-                              [float(e) for e in li.pop("elevations_deg")],
+                              [_number(e, f"{jpath}, lidar.elevations_deg")
+                               for e in li.pop("elevations_deg")],
                               str(li.pop("intensity", "raw")), extra=li)
             objects = {}
             for name, o in (data.get("objects") or {}).items():
                 o = dict(o)
                 objects[name] = ObjectRecord(
                     name=name, track_id=int(o.pop("track_id")), kind=str(o.pop("kind", "")),
-                    size_hwl=[float(v) for v in o.pop("size_hwl", [0, 0, 0])],
+                    size_hwl=[_number(v, f"{jpath}, objects.{name}.size_hwl")
+                              for v in o.pop("size_hwl", [0, 0, 0])],
                     moving=bool(o.pop("moving", True)),
                     ply=rel(o.pop("ply", f"{name}.ply")), extra=o)
             frames = []
             for k, f in enumerate(data["frames"]):
                 where = f"{jpath}, frames[{k}]"
                 frames.append(FrameRecord(
-                    index=int(f["index"]), time=float(f.get("time", 0.0)),
+                    index=int(f["index"]), time=_number(f.get("time", 0.0), where + ".time"),
                     held_out=bool(f.get("held_out", False)),
                     camera=str(f.get("camera", "camera_%04d" % int(f["index"]))),
                     lidar=str(f.get("lidar", "lidar_%04d" % int(f["index"]))),
@@ -258,8 +319,11 @@ class Frames:
                     extra={kk: v for kk, v in f.items() if kk not in _FRAME_KEYS}))
         except KeyError as exc:
             raise UserError(f"{jpath}: missing key {exc.args[0]!r}") from None
-        except (TypeError, ValueError) as exc:
+        except (TypeError, ValueError, AttributeError) as exc:
             raise UserError(f"{jpath}: malformed entry ({exc})") from None
+        indices = [f.index for f in frames]
+        if len(set(indices)) != len(indices):
+            raise UserError(f"{jpath}: frame indices repeat")
         gt = data.get("ground_truth")
         gt_dir = rel(gt["dir"]) if isinstance(gt, dict) and gt.get("dir") else None
         return cls(jpath, data.get("source"), camera, lidar, objects, gt_dir, frames,
@@ -307,144 +371,8 @@ class Frames:
         path = Path(path) if path is not None else self.path
         if path.is_dir() or path.suffix.lower() != ".json":
             path = path / "frames.json"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".part")
-        tmp.write_text(json.dumps(self.to_json(path.parent), indent=1))
-        os.replace(tmp, path)
-        return path
+        return write_json(path, self.to_json(path.parent))
 
     def object_to_world(self, i: int, name: str) -> np.ndarray | None:
         """Object ``name``'s pose at frame position ``i`` (None if unlisted)."""
         return self.frames[i].objects.get(name)
-
-
-# ----------------------------------------------------------------------------
-# Placing objects for a frame
-# ----------------------------------------------------------------------------
-
-# id(scene) -> (weakref or scene, {object name: current object->world pose})
-_placed: dict = {}
-
-
-def _state(scene) -> dict:
-    key = id(scene)
-    entry = _placed.get(key)
-    if entry is not None:
-        ref, poses = entry
-        alive = ref() if isinstance(ref, weakref.ref) else ref
-        if alive is scene:
-            return poses
-    try:
-        ref = weakref.ref(scene, lambda _r, key=key: _placed.pop(key, None))
-    except TypeError:
-        ref = scene  # not weak-referenceable: keep it (scenes are few)
-    poses = {}
-    _placed[key] = (ref, poses)
-    return poses
-
-
-def _find_shape(scene, name):
-    for shape in scene.shapes():
-        if shape.id() == name:
-            return shape
-    return None
-
-
-def _find_sensor(scene, name):
-    for sensor in scene.sensors():
-        if sensor.id() == name:
-            return sensor
-    return None
-
-
-def _quat_mul(a, b):
-    """Hamilton product of (N, 4) quaternions stored x y z w."""
-    ax, ay, az, aw = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
-    bx, by, bz, bw = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
-    return np.stack([aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw,
-                     aw * bw - ax * bx - ay * by - az * bz], axis=-1)
-
-
-def _rotation_to_quat_xyzw(R) -> np.ndarray:
-    from .physics.gaussian_ply import matrix_to_quaternion
-    q = matrix_to_quaternion(np.asarray(R, np.float64)[None])[0]  # w x y z
-    return np.array([q[1], q[2], q[3], q[0]])
-
-
-class _ShapeParams:
-    """The scene-level parameters of one shape under its own key names.
-
-    Updating through ``mi.traverse(shape)`` changes the shape but not the
-    scene's acceleration structure (Mitsuba 3.9.1): rays would still hit the
-    old positions. Going through ``mi.traverse(scene)`` rebuilds it.
-    """
-
-    def __init__(self, scene_params, name):
-        self.p, self.name = scene_params, name
-
-    def __contains__(self, key):
-        return self.name + "." + key in self.p
-
-    def __getitem__(self, key):
-        return self.p[self.name + "." + key]
-
-    def __setitem__(self, key, value):
-        self.p[self.name + "." + key] = value
-
-    def update(self):
-        self.p.update()
-
-
-def transform_gaussians(shape, delta: np.ndarray, scene=None) -> None:
-    """Apply a rigid 4x4 transform to a ``gaussians`` shape's parameters
-    (pass ``scene`` so that its acceleration structure follows)."""
-    import mitsuba as mi
-
-    params = _ShapeParams(mi.traverse(scene), shape.id()) if scene is not None \
-        else mi.traverse(shape)
-    data = np.array(params["data"], np.float64).reshape(-1, 10)
-    R, t = delta[:3, :3], delta[:3, 3]
-    data[:, :3] = (R @ data[:, :3].T).T + t     # not data @ R.T: slow in numpy
-    q = _rotation_to_quat_xyzw(R)
-    qn = _quat_mul(np.broadcast_to(q, data[:, 6:10].shape), data[:, 6:10])
-    data[:, 6:10] = qn / np.linalg.norm(qn, axis=1, keepdims=True)
-    params["data"] = type(params["data"])(data.astype(np.float32).reshape(params["data"].shape))
-    if "normal" in params:
-        n = (R @ np.array(params["normal"], np.float64).reshape(-1, 3).T).T
-        params["normal"] = type(params["normal"])(
-            n.astype(np.float32).reshape(params["normal"].shape))
-    params.update()
-
-
-def set_frame(scene, frames: Frames, i: int):
-    """Place the dynamic objects for frame position ``i`` (see module docstring).
-
-    Returns ``(camera_sensor, lidar_sensor)`` of that frame (None if absent).
-    """
-    if not 0 <= i < len(frames):
-        raise IndexError(f"frame {i} out of range (0..{len(frames) - 1})")
-    record = frames[i]
-    current = _state(scene)
-    for name in frames.objects:
-        target = record.objects.get(name)
-        if target is None:
-            continue
-        shape = _find_shape(scene, name)
-        if shape is None:
-            continue
-        now = current.get(name)
-        if now is None:
-            now = frames[0].objects.get(name, target)
-        delta = target @ np.linalg.inv(now)
-        if not np.allclose(delta, np.eye(4), atol=1e-9):
-            transform_gaussians(shape, delta, scene)
-        current[name] = target
-    return _find_sensor(scene, record.camera), _find_sensor(scene, record.lidar)
-
-
-def reset_tracking(scene) -> None:
-    """Forget where ``set_frame`` placed this scene's objects (call after
-    reloading parameters that put them back at frame 0)."""
-    _placed.pop(id(scene), None)

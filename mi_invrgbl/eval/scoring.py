@@ -1,0 +1,280 @@
+"""Scoring a (fitted) scene on its frames: :func:`evaluate`.
+
+For every selected frame (default: the held-out ones, ``index % 5 == 4``)
+the dynamic objects are placed (:func:`mi_invrgbl.scene.posing.set_frame`),
+the frame's camera is rendered with the scene's integrator and its LiDAR
+with ``lidar_return``, and the renders are compared with the observations:
+
+* camera: PSNR and SSIM in sRGB. The observed images are 8-bit sRGB PNGs,
+  so the linear render is converted with the sRGB curve, clipped to [0, 1]
+  and compared in [0, 1] (peak 1).
+* LiDAR: intensity RMSE over the beams that return in the observation,
+  range error (mean |dr| where both return), ray-drop accuracy (all beams),
+  and the nearest-neighbour baseline's intensity RMSE on the same beams
+  (:mod:`mi_invrgbl.eval.baselines`, built from the *training* frames' points).
+* synthetic ground truth (``frames.json`` ``ground_truth.dir``, as written by
+  ``make-scene street``): albedo RMSE after a per-channel scale fit, roughness
+  MAE, normal angular error (degrees), LiDAR-albedo RMSE (absolute and
+  scale-fitted), all over the pixels where the true surface exists and the
+  render covers (alpha > 0.5; the AOVs are divided by alpha), and relighting
+  PSNR / SSIM: the scene's ``shsun`` is set to the ground truth's time-B light
+  (constant sky radiance -> SH order-0 coefficient ``L / Y_0``, sun direction
+  and irradiance), rendered, and compared with ``gt/time_b/N.exr`` (linear,
+  both converted to sRGB and clipped).
+
+Ground-truth files and the world alignment: :mod:`.ground_truth`.
+
+:func:`write_metrics` writes ``metrics.json`` (per frame and the mean over
+frames; PSNR of identical images is reported as :data:`PSNR_CAP` dB, JSON
+has no infinity); what ``fit`` wrote into that file before (selection,
+response, times) is kept under ``"fit"``. :func:`format_table` prints them.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import UserError
+from ..scene.frames import Frames, write_json
+from ..scene.loading import load_scene
+from ..scene.posing import set_frame
+from . import metrics as M
+from .ground_truth import gt_alignment, ground_truth_metrics, load_lights, source_number, sun_metrics
+from .inputs import read_channels, read_json_dict, read_png, resolve_inputs, select_frames
+from .rendering import SkySwap, find_sky, integrator_like, load_lidar_integrator, render_camera, render_lidar
+
+#: PSNR reported for identical images (MSE = 0).
+PSNR_CAP = 100.0
+
+#: Columns of the printed table: (key, header, format).
+TABLE = (("psnr", "PSNR", "%6.2f"), ("ssim", "SSIM", "%6.4f"),
+         ("lidar_intensity_rmse", "I-RMSE", "%7.4f"), ("baseline_intensity_rmse", "NN-RMSE", "%7.4f"),
+         ("range_error", "range", "%6.3f"), ("ray_drop_accuracy", "drop-acc", "%8.4f"),
+         ("albedo_rmse", "albedo", "%6.4f"), ("roughness_mae", "rough", "%6.4f"),
+         ("normal_angle_deg", "normal°", "%7.2f"), ("lidar_albedo_rmse", "L-alb", "%6.4f"),
+         ("relight_psnr", "relight", "%7.2f"))
+
+
+def _cap(v):
+    if v is None:
+        return None
+    v = float(v)
+    if math.isnan(v):
+        return None
+    return min(v, PSNR_CAP) if v > 0 and math.isinf(v) else v
+
+
+def image_metrics(render_lin, observed_srgb):
+    pred = np.clip(M.linear_to_srgb(render_lin), 0.0, 1.0)
+    if pred.shape != observed_srgb.shape:
+        raise UserError("the camera renders %dx%d but the observation is %dx%d"
+                        % (pred.shape[1], pred.shape[0], observed_srgb.shape[1],
+                           observed_srgb.shape[0]))
+    return {"psnr": min(M.psnr(pred, observed_srgb, 1.0), PSNR_CAP),
+            "ssim": M.ssim(pred, observed_srgb, 1.0)}
+
+
+def lidar_metrics(pred, obs, baseline=None, sensor=None):
+    shape = obs["intensity"].shape
+    if pred["intensity"].shape != shape:
+        raise UserError("the LiDAR renders %dx%d but the observed scan is %dx%d"
+                        % (pred["intensity"].shape[1], pred["intensity"].shape[0],
+                           shape[1], shape[0]))
+    obs_hit = obs["hit"] > 0.5
+    out = {"lidar_intensity_rmse": M.rmse(pred["intensity"], obs["intensity"], obs_hit),
+           "range_error": M.range_error(pred["range"], obs["range"], pred["hit"], obs["hit"]),
+           "ray_drop_accuracy": M.ray_drop_accuracy(pred["hit"], obs["hit"]),
+           "lidar_returns": float(obs_hit.mean())}
+    if baseline is not None and sensor is not None:
+        dirs = np.asarray(sensor.ray_directions_local(), np.float64)
+        if dirs.shape[:2] == shape:
+            to_world = np.array(sensor.world_transform().matrix, np.float64).reshape(4, 4)
+            dirs_w = dirs @ to_world[:3, :3].T
+            dirs_w /= np.maximum(np.linalg.norm(dirs_w, axis=-1, keepdims=True), 1e-12)
+            nn = baseline.predict_scan(obs["range"], dirs_w, to_world[:3, 3], obs_hit)
+            out["baseline_intensity_rmse"] = M.rmse(nn, obs["intensity"], obs_hit)
+    return out
+
+
+def _mean(rows):
+    keys = []
+    for r in rows:
+        keys += [k for k, v in r.items() if k not in keys and isinstance(v, (int, float))
+                 and not isinstance(v, bool) and k not in ("index", "position")]
+    out = {}
+    for k in keys:
+        vals = [r[k] for r in rows if isinstance(r.get(k), (int, float)) and r[k] is not None
+                and math.isfinite(r[k])]
+        if vals:
+            out[k] = float(np.mean(vals))
+    return out
+
+
+def format_table(rows, mean) -> str:
+    cols = [c for c in TABLE if any(c[0] in r for r in rows)]
+    head = "frame " + " ".join("%8s" % c[1] for c in cols)
+    lines = [head, "-" * len(head)]
+
+    def fmt(row, label):
+        cells = []
+        for key, _, f in cols:
+            v = row.get(key)
+            cells.append("%8s" % ("-" if v is None else (f % v).strip()))
+        return "%-5s " % label + " ".join(cells)
+
+    for r in rows:
+        lines.append(fmt(r, "%d" % r["index"]))
+    lines.append(fmt(mean, "mean"))
+    return "\n".join(lines)
+
+
+def json_clean(value):
+    """``value`` with NaN as null, infinite PSNR capped, numpy scalars as Python."""
+    if isinstance(value, dict):
+        return {k: json_clean(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_clean(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return _cap(value)
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
+def evaluate(scene_path, frames_spec="held-out", spp=0, samples=None, lidar_model=None,
+             baseline=True, relight=True, baseline_max_points=2_000_000, save_renders=None,
+             log=print):
+    """Score a scene; returns the metrics dictionary (see the module docstring)."""
+    scene_xml, scene_lidar = resolve_inputs(scene_path)
+    frames = Frames.load(scene_xml)
+    positions = select_frames(frames, frames_spec)
+    t0 = time.time()
+    scene = load_scene(str(scene_xml))
+    lidar_integ = load_lidar_integrator(scene_lidar, lidar_model)
+    cam_integ = integrator_like(scene, samples)
+    log("[eval] %s: %d frame(s) to score, loaded in %.1f s%s"
+        % (scene_xml, len(positions), time.time() - t0,
+           "" if scene_lidar is None else "; LiDAR response from %s" % scene_lidar.name))
+
+    nn = None
+    if baseline:
+        from .baselines import NearestNeighbourIntensity, load_points
+        held = {k for k in range(len(frames)) if frames[k].held_out} | set(positions)
+        paths = [frames[k].points for k in range(len(frames))
+                 if k not in held and frames[k].points is not None
+                 and os.path.isfile(frames[k].points)]
+        if paths:
+            t = time.time()
+            pts = load_points(paths, baseline_max_points)
+            if len(pts):
+                nn = NearestNeighbourIntensity(pts)
+                log("[eval] nearest-neighbour baseline: %d points from %d training frame(s), "
+                    "%.1f s" % (len(nn), len(paths), time.time() - t))
+        else:
+            log("[eval] no training points: nearest-neighbour baseline skipped")
+
+    gt_dir = frames.ground_truth if frames.ground_truth is not None \
+        and Path(frames.ground_truth).is_dir() else None
+    if frames.ground_truth is not None and gt_dir is None:
+        log("[eval] ground truth %s not found: material metrics skipped" % frames.ground_truth)
+    R = gt_alignment(frames, positions, gt_dir) if gt_dir else np.eye(3)
+    lights = load_lights(gt_dir) if gt_dir and relight else None
+    sky = find_sky(scene) if lights and "time_b" in lights else None
+    if lights and "time_b" in lights and sky is None:
+        log("[eval] the scene has no shsun emitter: relighting score skipped")
+    # A moved sun needs traced sun visibility, not the fitted per-Gaussian field.
+    relight_integ = integrator_like(scene, samples, "trace") if sky is not None else None
+
+    rows = []
+    for k in positions:
+        rec = frames[k]
+        t = time.time()
+        cam_sensor, lidar_sensor = set_frame(scene, frames, k)
+        row = {"index": rec.index}
+        if cam_sensor is None:
+            raise UserError("%s: no camera sensor '%s' for frame %d" % (scene_xml, rec.camera, rec.index))
+        cam = render_camera(scene, cam_sensor, spp, cam_integ)
+        if rec.image is not None:
+            row.update(image_metrics(cam["rgb"], read_png(rec.image)))
+        if lidar_sensor is not None and rec.lidar_scan is not None:
+            obs = read_channels(rec.lidar_scan, ["intensity", "range", "hit"], "LiDAR scan")
+            pred = render_lidar(scene, lidar_sensor, lidar_integ)
+            row.update(lidar_metrics(pred, obs, nn, lidar_sensor))
+        elif rec.lidar_scan is not None:
+            log("[eval] frame %d: no LiDAR sensor '%s' in the scene" % (rec.index, rec.lidar))
+        if gt_dir is not None:
+            row.update(ground_truth_metrics(cam, gt_dir, source_number(rec), R))
+        if save_renders:
+            from ..io.images import write_exr
+            os.makedirs(save_renders, exist_ok=True)
+            write_exr(os.path.join(save_renders, "camera_%04d.exr" % rec.index),
+                      cam["rgb"], ["R", "G", "B"])
+        row["time_s"] = time.time() - t
+        rows.append(row)
+        log("[eval] frame %d scored in %.1f s" % (rec.index, row["time_s"]))
+
+    # Relighting in a second pass with the time-B light set once: the
+    # integrator's lighting precompute (minutes at 1e5-1e6 Gaussians) is
+    # redone whenever the sun or the geometry changes, so interleaving the two
+    # lights would pay it twice per frame even in a static scene.
+    if sky is not None:
+        todo = [(k, row, Path(gt_dir) / "time_b" / ("%06d.exr" % source_number(frames[k])))
+                for k, row in zip(positions, rows)]
+        todo = [item for item in todo if item[2].is_file()]
+        if todo:
+            lb = lights["time_b"]
+            swap = SkySwap(sky)
+            try:
+                swap.set(lb.get("sky_radiance", [0, 0, 0]),
+                         R @ np.asarray(lb.get("sun_direction", [0, 0, 1]), np.float64),
+                         lb.get("sun_irradiance", [0, 0, 0]))
+                for k, row, gt_b in todo:
+                    t = time.time()
+                    cam_sensor, _ = set_frame(scene, frames, k)
+                    relit = render_camera(scene, cam_sensor, spp, relight_integ)
+                    truth = read_channels(gt_b, ["r", "g", "b"], "relighting ground truth")
+                    truth = np.stack([truth["r"], truth["g"], truth["b"]], -1)
+                    m = image_metrics(relit["rgb"], np.clip(M.linear_to_srgb(truth), 0.0, 1.0))
+                    row["relight_psnr"], row["relight_ssim"] = m["psnr"], m["ssim"]
+                    row["relight_time_s"] = time.time() - t
+                    log("[eval] frame %d relit (time B) in %.1f s" % (frames[k].index,
+                                                                     row["relight_time_s"]))
+            finally:
+                swap.restore()
+
+    mean = _mean(rows)
+    lighting = sun_metrics(sky, lights, R) if sky is not None else None
+    if lighting:
+        log("[eval] sun: %s" % ("not used" if not lighting["sun_used"] else
+                                 "%.1f deg from the true time-A direction"
+                                 % lighting["sun_direction_error_deg"]))
+    result = {"format": "mi-invrgbl-metrics/1", "scene": str(Path(scene_xml).absolute()),
+              "frames_json": str(frames.path), "selection": frames_spec,
+              "lidar_response": str(scene_lidar) if scene_lidar else "default",
+              "ground_truth": str(gt_dir) if gt_dir else None,
+              "notes": {"psnr": "sRGB in [0, 1], peak 1; identical images = %g dB" % PSNR_CAP,
+                        "albedo_rmse": "per-channel least-squares scale fit, then RMSE",
+                        "lidar_intensity_rmse": "over beams that return in the observation"},
+              "frames": rows, "mean": mean, "lighting": lighting}
+    return result
+
+
+def write_metrics(result, out) -> str:
+    """Write ``result`` to ``out`` (standard JSON, atomically), keeping what
+    ``fit`` wrote there before under ``"fit"``; returns the path."""
+    out = str(out)
+    # DIR/fit/metrics.json first holds what ``fit`` reported (selection,
+    # response, times); keep it under "fit" instead of overwriting it.
+    previous = read_json_dict(out)
+    if previous is not None:
+        if previous.get("format") != result["format"]:
+            result["fit"] = previous
+        elif "fit" in previous:
+            result["fit"] = previous["fit"]
+    write_json(out, json_clean(result))
+    return out

@@ -1,0 +1,158 @@
+"""Beam layout from the data: synthetic sweeps of three sensors (a non-uniform
+VLP-32C stored in shuffled order, an OS1-128 and an explicit solid-state ray
+pattern) imported, and their beam layout recovered exactly."""
+
+import json
+
+import numpy as np
+import pytest
+import mitsuba as mi
+
+from mi_invrgbl.errors import UserError
+from mi_invrgbl.io.range_image import detect_beam_layout, range_image
+from mi_invrgbl.physics.beam_layout import elevation_clusters, ray_beams
+from mi_invrgbl.synthetic import StreetConfig, generate_street, sensors, writers
+
+FRAMES = 2
+
+
+def solid_state_rays(path):
+    """20 rows at non-uniform elevations, 120 rays each over +-50 degrees,
+    rows staggered in azimuth (not a grid); the beam in column 7."""
+    el = np.concatenate([np.linspace(-1, -6, 12), np.linspace(-7, -20, 8)])
+    rows = []
+    for k, e in enumerate(el):
+        az = np.radians(np.linspace(-50, 50, 120) + (k % 3) * 0.27)
+        er = np.radians(e)
+        d = np.stack([np.cos(er) * np.cos(az), np.cos(er) * np.sin(az),
+                      np.full_like(az, np.sin(er))], 1)
+        rows.append(np.hstack([np.zeros_like(d), d, np.full((len(az), 1), k)]))
+    np.save(path, np.concatenate(rows))
+    return el
+
+
+@pytest.fixture(scope="module")
+def streets(tmp_path_factory):
+    mi.set_variant("llvm_ad_rgb")
+    root = tmp_path_factory.mktemp("sensors")
+    solid = solid_state_rays(root / "solid.npy")
+    out = {}
+    for name, lidar, inten in (("vlp32", "vlp32", "raw"), ("os128", "os128", "reflectivity"),
+                               ("rays", "rays:%s" % (root / "solid.npy"), "raw")):
+        path = root / name
+        generate_street(str(path), StreetConfig(seed=5, frames=FRAMES, width=16, height=8, spp=1,
+                                                azimuth_steps=128, night=False, lidar=lidar,
+                                                intensity=inten), log=lambda *a: None)
+        out[name] = path
+    out["solid_elevations"] = solid
+    return out
+
+
+def sweeps(path, shuffle=None):
+    pts = [writers.read_velodyne(str(path / "sequences" / "00" / "velodyne" / ("%06d.bin" % i)))
+           for i in range(FRAMES)]
+    if shuffle is not None:
+        pts = [p[shuffle.permutation(len(p))] for p in pts]
+    return pts
+
+
+def truth(path):
+    return json.loads((path / "gt" / "trajectory.json").read_text())["lidar"]
+
+
+def test_vlp32_non_uniform_shuffled(streets):
+    pts = sweeps(streets["vlp32"], np.random.default_rng(0))
+    layout = detect_beam_layout([p[:, :3] for p in pts])
+    assert layout.kind == "spinning" and layout.method == "histogram"
+    assert layout.n_beams == 32 and not layout.uniform
+    assert np.allclose(np.degrees(layout.elevations), sensors.VLP32C_DEG, atol=1e-3)
+    assert "32 beams, non-uniform" in layout.describe()
+    # Every point gets its true beam: its row in the ground-truth range image.
+    ri = range_image(pts[0][:, :3], pts[0][:, 3], width=128, beam_elevations=layout.elevations)
+    gt = writers.read_exr(str(streets["vlp32"] / "gt" / "lidar" / "000000.exr"))
+    assert np.array_equal(ri.hit, gt["hit"] > 0.5)
+    # The old default (KITTI's firing order, else 64 clusters) would not find 32.
+    assert truth(streets["vlp32"])["beams"] == 32
+
+
+def test_os128_uniform(streets):
+    layout = detect_beam_layout([p[:, :3] for p in sweeps(streets["os128"])])
+    assert layout.kind == "spinning" and layout.n_beams == 128 and layout.uniform
+    assert np.allclose(np.degrees(layout.elevations), np.linspace(22.5, -22.5, 128), atol=1e-3)
+
+
+def test_explicit_ray_pattern(streets):
+    path = streets["rays"]
+    layout = detect_beam_layout([p[:, :3] for p in sweeps(path)])
+    assert layout.kind == "rays"
+    assert layout.n_beams == 20
+    assert np.allclose(np.degrees(layout.elevations), streets["solid_elevations"], atol=1e-3)
+    # The recovered rays are exactly the pattern's rays that returned in some sweep,
+    # each with its own beam.
+    pattern = np.load(path / "gt" / "lidar_rays.npy")
+    hit = np.zeros(len(pattern), bool)
+    for i in range(FRAMES):
+        hit |= writers.read_exr(str(path / "gt" / "lidar" / ("%06d.exr" % i)))["hit"].ravel() > 0.5
+    want = pattern[hit]
+    assert len(layout.rays) == len(want)
+    cos = layout.rays @ want[:, 3:6].T
+    match = np.argmax(cos, axis=1)
+    assert np.all(cos[np.arange(len(match)), match] > 1 - 1e-9)
+    assert len(np.unique(match)) == len(match)
+    assert np.array_equal(layout.ray_beam, want[match, 6].astype(int))
+
+
+def test_street_metadata_and_reflectivity(streets):
+    li = truth(streets["os128"])
+    assert li["sensor"] == "os128" and li["intensity"] == "reflectivity"
+    assert len(li["beam_gains"]) == 128 and np.ptp(li["beam_gains"]) > 0.1
+    assert truth(streets["rays"])["rays"] == "gt/lidar_rays.npy"
+
+
+def test_histogram_refuses_overlapping_beams():
+    rng = np.random.default_rng(1)
+    # Two beams 0.4 deg apart, each smeared over 1 deg (a multi-origin head).
+    e = np.radians(np.concatenate([rng.uniform(-0.5, 0.5, 2000), rng.uniform(-0.9, 0.1, 2000)]))
+    assert not elevation_clusters(e).separated
+
+
+def test_rosette_is_one_beam():
+    rng = np.random.default_rng(2)
+    d = rng.normal(size=(500, 3))
+    d[:, 0] = np.abs(d[:, 0]) + 2
+    beam, table = ray_beams(d)
+    assert table.size == 1 and np.all(beam == 0)
+
+
+def test_bad_lidar_options(tmp_path):
+    with pytest.raises(UserError, match="--lidar"):
+        StreetConfig(lidar="hdl32").validate()
+    with pytest.raises(UserError, match="cannot read"):
+        StreetConfig(lidar="rays:%s" % (tmp_path / "none.npy")).validate()
+    np.save(tmp_path / "bad.npy", np.zeros((4, 5)))
+    with pytest.raises(UserError, match=r"\(N, 6\)"):
+        StreetConfig(lidar="rays:%s" % (tmp_path / "bad.npy")).validate()
+    with pytest.raises(UserError, match="--intensity"):
+        StreetConfig(intensity="dB").validate()
+
+
+def test_import_finds_the_vlp32_layout(streets, tmp_path):
+    """``import`` of the VLP-32C street, its sweeps stored shuffled: 32 beams
+    with the sensor's table in frames.json and the scene, reported in the log."""
+    import shutil
+    from mi_invrgbl.io.importer import ImportOptions, import_scene
+    data = tmp_path / "street"
+    shutil.copytree(streets["vlp32"], data)
+    rng = np.random.default_rng(3)
+    for i in range(FRAMES):
+        f = data / "sequences" / "00" / "velodyne" / ("%06d.bin" % i)
+        p = writers.read_velodyne(str(f))
+        writers.write_velodyne(str(f), p[rng.permutation(len(p))])
+    lines = []
+    import_scene(data, tmp_path / "out" / "scene.xml",
+                 ImportOptions(max_points=3000, azimuth_steps=128, object_points=50, verify=False),
+                 log=lambda *a: lines.append(" ".join(map(str, a))))
+    assert any("32 beams, non-uniform" in ln for ln in lines), lines
+    frames = json.loads((tmp_path / "out" / "frames.json").read_text())
+    assert frames["lidar"]["beams"] == 32
+    assert np.allclose(frames["lidar"]["elevations_deg"], sensors.VLP32C_DEG, atol=1e-3)
