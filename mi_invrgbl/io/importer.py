@@ -272,12 +272,15 @@ def _scaled_size(W0, H0, scale):
     return W, H, (W0, H0)        # no exact crop: scales differ by < 1 pixel over the image
 
 
-def _read_image_uint8(path, size, crop=None):
+def _read_image_uint8(path, size, crop=None, expected=None):
     import cv2
 
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
         raise UserError(f"{path}: not a readable image")
+    if expected is not None and (img.shape[1], img.shape[0]) != tuple(expected):
+        raise UserError(f"{path}: image is {img.shape[1]}x{img.shape[0]}, the calibration's "
+                        f"(and the drive's) is {expected[0]}x{expected[1]}")
     if crop is not None:
         img = img[:crop[1], :crop[0]]
     if (img.shape[1], img.shape[0]) != tuple(size):
@@ -357,7 +360,7 @@ def _read(data, opts, log):
             continue
         kept.append(p)
         scans.append((pts, inten))
-        images.append(_read_image_uint8(drive.image_paths[p], (W, H), crop))
+        images.append(_read_image_uint8(drive.image_paths[p], (W, H), crop, (W0, H0)))
     if not kept:
         raise UserError(f"{drive.root}: no frame with a usable LiDAR sweep")
     log("[import] %s (%s layout): %d frames%s, image %dx%d -> %dx%d"
