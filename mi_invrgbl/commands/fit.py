@@ -49,6 +49,10 @@ def add_parser(sub):
     p.add_argument("--keep-sky-lookalikes", action="store_true",
                    help="keep stage-1 Gaussians that have the sky's colour and only sky behind "
                         "them (default: removed before stage 2; they cast shadows no roof casts)")
+    p.add_argument("--budget", type=float, default=0.0, metavar="MINUTES",
+                   help="wall-time budget: both stages' iterations, stage 1's batch and learning-rate "
+                        "schedule from the measured speed, early stop on validation frames "
+                        "(overrides --stage1/--stage2)")
     p.add_argument("--max-gaussians", type=int, default=800000, help="densification cap")
     p.add_argument("--checkpoint-every", type=int, default=50)
     p.add_argument("--eval-every", type=int, default=50)
@@ -67,6 +71,8 @@ def config_from_args(args):
     for name in ("stage1", "stage2", "width", "lidar_columns", "batch", "samples"):
         if getattr(args, name) < (0 if name.startswith("stage") else 1):
             raise UserError("--%s must be positive" % name.replace("_", "-"))
+    if not args.budget >= 0:
+        raise UserError("--budget must be a number of minutes >= 0 (got %r)" % args.budget)
     render_samples = str(args.render_samples).strip().lower()
     if render_samples != "auto" and not (render_samples.isdigit() and int(render_samples) >= 1):
         raise UserError("--render-samples must be 'auto' or a positive number (got %r)"
@@ -82,7 +88,8 @@ def config_from_args(args):
                      per_frame_visibility=args.per_frame_visibility,
                      sun_visibility=args.sun_visibility,
                      prune_sky_lookalikes=not args.keep_sky_lookalikes,
-                     learn_sun_direction=args.learn_sun_direction)
+                     learn_sun_direction=args.learn_sun_direction,
+                     budget_minutes=args.budget)
 
 
 def run(args):

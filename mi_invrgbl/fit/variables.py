@@ -179,6 +179,13 @@ class Optimizer:
         for v, value in self.items():
             v.write(dr.detach(value))
 
+    def scale_learning_rates(self, factor, which):
+        """Set the learning rate of every handle ``which(handle)`` accepts to
+        ``factor`` times its own (a schedule)."""
+        for k, v in self.variables.items():
+            if which(v):
+                self.adam.set_learning_rate({k: float(v.lr * factor)})
+
     def moments(self, key):
         """(t, m, v) of one variable as numpy (m, v flat)."""
         _, _, _, (t, m, v, _) = self.adam.state[key]
