@@ -24,7 +24,7 @@ def add_parser(sub):
     p.add_argument("--samples", type=int, default=16, help="sky samples M per Gaussian while fitting (default 16)")
     p.add_argument("--render-samples", default="auto",
                    help="sky samples M written into the fitted scene.xml: 'auto' (the smallest of "
-                        "4/8/16/32 within 0.1 dB of the best held-out PSNR) or a number")
+                        "4/8/16/32 within 0.1 dB of the best validation PSNR) or a number")
     p.add_argument("--weights", default="",
                    help="loss weights, e.g. 'rgb2lidar=0,lidar2rgb=0' (paper defaults: lidar=rgb=1, "
                         "nor=mat=0.1, rgb2lidar=lidar2rgb=0.05; 0 switches a term off)")
@@ -34,7 +34,7 @@ def add_parser(sub):
     p.add_argument("--sh-order", choices=("auto", "0", "1", "2", "3"), default="auto",
                    help="SH order of the sky: decided from the visible sky (auto) or forced")
     p.add_argument("--lidar-model", choices=("auto", "pbr", "lambertian"), default="auto",
-                   help="LiDAR reflectance: keep the specular lobe only if it lowers held-out error (auto)")
+                   help="LiDAR reflectance: keep the specular lobe only if it lowers validation error (auto)")
     p.add_argument("--no-response", action="store_true",
                    help="keep the paper's cos/d^2 LiDAR response instead of estimating it")
     p.add_argument("--per-frame-visibility", action="store_true",

@@ -49,6 +49,7 @@ from .stage1 import Stage1
 from .stage2 import FrozenScene, Stage2
 from .state import FitState
 from .steps import restore_optimizer
+from .variables import GaussianVariable
 
 
 def run_fit(scene_path, config: FitConfig, log=print):
@@ -129,7 +130,7 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
         def after_step(it, total):
             s1.after_step(it, total)
             s1.opt.scale_learning_rates(position_lr_factor(it, total),
-                                        lambda v: getattr(v, "field", None) is position)
+                                        lambda v: isinstance(v, GaussianVariable) and v.field is position)
     if total > start:
         train(state, StageRun("stage 1", s1.iteration,
                               lambda: (score_stage1(state, state.held_out_frames), float("nan")),
