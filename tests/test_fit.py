@@ -258,6 +258,7 @@ def test_cli_flags_reach_the_config():
     assert default.sun_visibility == "learn"
     cfg = parse("--keep-sky-lookalikes", "--learn-sun-direction", "--sun-visibility", "trace")
     assert not cfg.prune_sky_lookalikes and cfg.learn_sun_direction and cfg.sun_visibility == "trace"
+    assert default.budget_minutes == 0 and parse("--budget", "8").budget_minutes == 8
 
 
 def _called_from(module):
@@ -372,3 +373,45 @@ def test_densify_carries_adam_moments(scene_path, tmp_path):
     # The optimiser goes on stepping over the new arrays.
     loss, _, ok = s1.iteration(4)
     assert ok and np.isfinite(loss)
+
+
+def test_early_stop_and_budget_plan():
+    from mi_invrgbl.fit.budget import EarlyStop, MAX_ITERATIONS, plan_stage, position_lr_factor
+    stop = EarlyStop(patience=3, min_gain=0.02)
+    scores = [20.0, 21.0, 21.5, 21.51, 21.52, 21.4]      # gains of 0.01, 0.02, -0.1 after 21.5
+    assert [stop.update(s) for s in scores] == [False] * 5 + [True]
+    assert stop.best == 21.5
+    assert not EarlyStop(patience=1).update(float("nan"))
+    plan = plan_stage("stage 1", 60.0, 0.01, done=4)     # 6000 iterations' worth of time
+    assert plan.batch_scale == 4 and plan.iterations == 4 + 6000 // 4
+    assert plan_stage("stage 2", 60.0, 0.01, batched=False).iterations == 6000
+    small = plan_stage("stage 1", 10.0, 0.1)
+    assert small.batch_scale == 1 and small.iterations == 100 <= MAX_ITERATIONS
+    assert position_lr_factor(0, 100) == 1.0 and abs(position_lr_factor(100, 100) - 0.01) < 1e-12
+
+
+@pytest.mark.slow
+def test_budget_sets_iterations_and_stops_in_time(scene_path, tmp_path):
+    import csv
+    budget = 1.5   # minutes: the fixed costs (tracing, selection, outputs) take about half
+    lines = []
+    metrics = run_fit(scene_path, small_config(tmp_path, budget_minutes=budget, eval_every=5),
+                      log=lines.append)
+    print("\n".join(str(x) for x in lines if "budget" in str(x) or "stops" in str(x)))
+    plans = metrics["selection"]["budget"]
+    print(plans, metrics["times_s"])
+    rows = list(csv.DictReader(open(tmp_path / "log.csv")))
+    for stage, share in (("stage 1", 0.3), ("stage 2", 0.3)):
+        plan = plans[stage]
+        assert plan["iterations"] > 4 and plan["seconds_per_iteration"] > 0
+        assert plan["seconds"] <= share * 60 * budget + 1e-6
+        last = max(int(r["iteration"]) for r in rows if r["stage"] == stage)
+        assert last <= plan["iterations"]
+        stopped = [str(x) for x in lines if str(x).startswith("[fit] %s stops" % stage)]
+        assert last == plan["iterations"] or stopped, (stage, last, plan)
+        # A stage's training ends within its share (plus the iteration that
+        # crossed the deadline and the last evaluations).
+        assert metrics["times_s"][stage] <= plan["seconds"] + 3 * plan["seconds_per_iteration"] + 5
+    # The iteration counts came from the budget, not --stage1/--stage2 (10 and 24 here).
+    assert plans["stage 1"]["iterations"] != 10
+    assert metrics["interrupted"] is False and np.isfinite(metrics["heldout_psnr"])

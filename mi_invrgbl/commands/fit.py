@@ -31,7 +31,7 @@ FLAGS = (
     ("--samples", "samples", "sky samples M per Gaussian while fitting", {}),
     ("--render-samples", "render_samples",
      "sky samples M written into the fitted scene.xml: 'auto' (the smallest of 4/8/16/32 "
-     "within 0.1 dB of the best held-out PSNR) or a number", {}),
+     "within 0.1 dB of the best validation PSNR) or a number", {}),
     ("--weights", "weights",
      "loss weights, e.g. 'rgb2lidar=0,lidar2rgb=0' (paper defaults: lidar=rgb=1, nor=mat=0.1, "
      "rgb2lidar=lidar2rgb=0.05; 0 switches a term off)", {"text": True}),
@@ -41,7 +41,7 @@ FLAGS = (
     ("--sh-order", "sh_order", "SH order of the sky: decided from the visible sky (auto) or forced",
      {"choices": ("auto", "0", "1", "2", "3")}),
     ("--lidar-model", "lidar_model",
-     "LiDAR reflectance: keep the specular lobe only if it lowers held-out error (auto)",
+     "LiDAR reflectance: keep the specular lobe only if it lowers validation error (auto)",
      {"choices": ("auto", "pbr", "lambertian")}),
     ("--no-response", "fit_response",
      "keep the paper's cos/d^2 LiDAR response instead of estimating it", {"invert": True}),
@@ -58,6 +58,10 @@ FLAGS = (
     ("--keep-sky-lookalikes", "prune_sky_lookalikes",
      "keep stage-1 Gaussians that have the sky's colour and only sky behind them (default: "
      "removed before stage 2; they cast shadows no roof casts)", {"invert": True}),
+    ("--budget", "budget_minutes",
+     "wall-time budget in minutes: both stages' iterations, stage 1's batch and learning-rate "
+     "schedule from the measured speed, early stop on validation frames (overrides "
+     "--stage1/--stage2; 0: none)", {}),
     ("--max-gaussians", "max_gaussians", "densification cap", {}),
     ("--checkpoint-every", "checkpoint_every", "iterations between checkpoints", {}),
     ("--eval-every", "eval_every", "iterations between held-out evaluations", {}),
@@ -118,6 +122,9 @@ def config_from_args(args):
                     "batch_rays", "samples"):
             if values[name] < (0 if name.startswith("stage") else 1):
                 raise UserError("%s must be positive" % flag)
+    if not values["budget_minutes"] >= 0:
+        raise UserError("--budget must be a number of minutes >= 0 (got %r)"
+                        % values["budget_minutes"])
     render_samples = str(values["render_samples"]).strip().lower()
     if render_samples != "auto" and not (render_samples.isdigit() and int(render_samples) >= 1):
         raise UserError("--render-samples must be 'auto' or a positive number (got %r)"

@@ -61,6 +61,11 @@ class FitConfig:
     #: not trained on, it scores the model selection. 0: no validation split
     #: (selection then scores training frames). Held-out frames never take part.
     validation_every: int = 5
+    #: Wall-time budget in minutes (0: none). Sets both stages' iterations,
+    #: stage 1's batch size and position learning-rate schedule from the
+    #: measured iteration speed, and stops a stage early once its validation
+    #: score stops improving (:mod:`.budget`); ``stage*_iterations`` are then unused.
+    budget_minutes: float = 0.0
 
     def to_json(self):
         d = asdict(self)

@@ -22,13 +22,16 @@ class StageRun:
     ``step(it)`` runs one iteration and returns (loss, terms, ok);
     ``evaluate()`` returns (held-out PSNR, held-out intensity RMSE) for the log;
     ``after_step(it, total)`` is the stage's own between-iterations work (stage 1
-    densifies there), or None; ``checkpoint(stage, it)`` writes a checkpoint.
+    densifies there), or None; ``checkpoint(stage, it)`` writes a checkpoint;
+    ``stop(it)`` returns a reason to end the stage early (a budget's
+    deadline or early stopping), or None.
     """
     name: str
     step: Callable
     evaluate: Callable
     checkpoint: Callable
     after_step: Callable | None = None
+    stop: Callable | None = None
 
 
 def _log_name(term):
@@ -47,7 +50,8 @@ def train(state: FitState, run: StageRun, start, total):
             if run.after_step is not None:
                 run.after_step(it, total)
             bar.update(it, "loss %.4g" % loss)
-            if it % cfg.eval_every == 0 or it == total:
+            reason = run.stop(it) if run.stop is not None else None
+            if it % cfg.eval_every == 0 or it == total or reason:
                 psnr, rmse = run.evaluate()
                 state.speed_log.add(
                     wall_s="%.2f" % (time.perf_counter() - state.t_start + state.wall_offset),
@@ -58,6 +62,9 @@ def train(state: FitState, run: StageRun, start, total):
                     peak_rss_mb="%.0f" % peak_rss_mb())
             if cfg.checkpoint_every and it % cfg.checkpoint_every == 0:
                 run.checkpoint(run.name, it)
+            if reason:
+                state.log("[fit] %s stops at iteration %d of %d: %s" % (run.name, it, total, reason))
+                break
     except KeyboardInterrupt:
         bar.close()
         state.log("\n[fit] interrupted at %s iteration %d: writing a checkpoint and the outputs so far"

@@ -15,6 +15,10 @@
    for rendering, both scored on the validation frames;
 8. outputs (:mod:`.outputs`).
 
+With a time budget (``--budget``, :mod:`.budget`) each stage's iterations
+follow from its share of the budget and its measured speed, and a stage
+stops early once its validation score stops improving.
+
 Both stages run in :func:`.loop.train`. A checkpoint
 (``DIR/fit/checkpoints/latest.npz``, :mod:`.checkpoint`) is written every
 ``checkpoint_every`` iterations, at the end of each stage and on Ctrl-C;
@@ -30,7 +34,9 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
+from ..physics.fields import BY_NAME
 from . import outputs
+from .budget import TIMED, Budget, EarlyStop, plan_stage, position_lr_factor, time_iterations
 from .checkpoint import checkpoint_path, fingerprint, load_checkpoint, save_checkpoint
 from .config import FitConfig  # noqa: F401  (the fit's options, imported from here by callers)
 from .evaluate import score_stage1, score_stage2
@@ -43,6 +49,7 @@ from .stage1 import Stage1
 from .stage2 import FrozenScene, Stage2
 from .state import FitState
 from .steps import restore_optimizer
+from .variables import GaussianVariable
 
 
 def run_fit(scene_path, config: FitConfig, log=print):
@@ -53,6 +60,7 @@ def run_fit(scene_path, config: FitConfig, log=print):
     os.makedirs(state.fit_dir, exist_ok=True)
     state.speed_log = SpeedErrorLog(os.path.join(state.fit_dir, "log.csv"))
     fp = fingerprint(state)
+    budget = Budget(config.budget_minutes, t_start) if config.budget_minutes > 0 else None
 
     def checkpoint(stage, it, opt=None):
         save_checkpoint(state, fp, stage, it, opt)
@@ -66,7 +74,7 @@ def run_fit(scene_path, config: FitConfig, log=print):
     stage2 = None
     try:
         if stage == "stage 1":
-            fit_geometry(state, start, opt_state, checkpoint)
+            fit_geometry(state, start, opt_state, checkpoint, budget)
             start, opt_state = 0, None
             t = time.perf_counter()
             lighting = choose_lighting(state)
@@ -77,11 +85,7 @@ def run_fit(scene_path, config: FitConfig, log=print):
         stage2, frozen = freeze(state, initialise=start == 0)
         if opt_state:
             restore_optimizer(stage2.opt.adam, opt_state)
-        if config.stage2_iterations > start:
-            train(state, StageRun("stage 2", stage2.iteration,
-                                  lambda: score_stage2(stage2, state.held_out_frames),
-                                  lambda name, it: checkpoint(name, it, stage2.opt.adam)),
-                  start, config.stage2_iterations)
+        last = fit_materials(state, stage2, start, checkpoint, budget)
         stage2.commit()
         report_sun_refinement(state)
         t = time.perf_counter()
@@ -92,7 +96,7 @@ def run_fit(scene_path, config: FitConfig, log=print):
         state.selection["samples"] = choose_render_samples(state, stage2, frozen)
         state.times["samples selection"] = time.perf_counter() - t
         log_choices(state)
-        checkpoint("done", config.stage2_iterations)
+        checkpoint("done", last)
         interrupted = False
     except Interrupted:
         interrupted = True
@@ -102,17 +106,36 @@ def run_fit(scene_path, config: FitConfig, log=print):
     return metrics
 
 
-def fit_geometry(state: FitState, start, opt_state, checkpoint):
+def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
     """Stage 1 from iteration ``start``, then the removal of sky look-alikes."""
     config = state.config
     s1 = Stage1(state)
     if opt_state:
         restore_optimizer(s1.opt.adam, opt_state)
-    if config.stage1_iterations > start:
+    total = planned(state, "stage 1", config.stage1_iterations)
+    after_step, stop = s1.after_step, None
+    if budget is not None and start == 0:
+        t = time.perf_counter()
+        start = 1 + TIMED
+        plan = plan_stage("stage 1", budget.share("stage 1"),
+                          time_iterations(s1.iteration, 1), done=start)
+        s1.batch_camera *= plan.batch_scale
+        s1.batch_lidar *= plan.batch_scale
+        state.selection.setdefault("budget", {})["stage 1"] = plan.as_dict()
+        total = plan.iterations
+        stop = early_stop(state, plan, t + budget.share("stage 1"),
+                          lambda: score_stage1(state, state.validation_frames))
+        position = BY_NAME["center"]
+
+        def after_step(it, total):
+            s1.after_step(it, total)
+            s1.opt.scale_learning_rates(position_lr_factor(it, total),
+                                        lambda v: isinstance(v, GaussianVariable) and v.field is position)
+    if total > start:
         train(state, StageRun("stage 1", s1.iteration,
                               lambda: (score_stage1(state, state.held_out_frames), float("nan")),
-                              lambda name, it: checkpoint(name, it, s1.opt.adam), s1.after_step),
-              start, config.stage1_iterations)
+                              lambda name, it: checkpoint(name, it, s1.opt.adam), after_step, stop),
+              start, total)
     if config.prune_sky_lookalikes:
         t = time.perf_counter()
         removed = s1.prune_sky_lookalikes()
@@ -122,6 +145,63 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint):
                                             or "none", time.perf_counter() - t))
     s1.pull()
     state.model.push(state.train_frames[0].poses, stage=1)
+
+
+def fit_materials(state: FitState, stage2, start, checkpoint, budget=None):
+    """Stage 2 from iteration ``start``; returns the last iteration."""
+    total = planned(state, "stage 2", state.config.stage2_iterations)
+    stop = None
+    if budget is not None and start == 0:
+        t = time.perf_counter()
+        spi = time_iterations(stage2.iteration, 1)
+        start = 1 + TIMED
+        # Leave time for what follows: the LiDAR lobe's refit, the choice of M
+        # (sky visibility traced again for M = 4, 8, 32: about three times what
+        # freezing traced for the fit's M) and the outputs (5 % of the budget).
+        reserve = (state.config.lobe_iterations * spi + 3 * state.times.get("freeze", 0.0)
+                   + 0.05 * 60 * budget.minutes)
+        seconds = max(0.0, min(budget.share("stage 2"), budget.left() - reserve))
+        plan = plan_stage("stage 2", seconds, spi, done=start, batched=False)
+        if seconds < budget.share("stage 2"):
+            state.log("[fit] budget: stage 2 gets %.0f of its %.0f s (the fixed costs so far took "
+                      "%.0f s; a larger --budget gives it its share)"
+                      % (seconds, budget.share("stage 2"), t - budget.t_start))
+        state.selection.setdefault("budget", {})["stage 2"] = plan.as_dict()
+        total = plan.iterations
+        stop = early_stop(state, plan, t + seconds, lambda: validation_score(
+            *score_stage2(stage2, state.validation_frames)))
+    if total > start:
+        return train(state, StageRun("stage 2", stage2.iteration,
+                                     lambda: score_stage2(stage2, state.held_out_frames),
+                                     lambda name, it: checkpoint(name, it, stage2.opt.adam),
+                                     stop=stop), start, total)
+    return max(start, total)
+
+
+def planned(state: FitState, stage, iterations):
+    """A stage's iteration count: a resumed budgeted fit keeps its plan."""
+    return int(state.selection.get("budget", {}).get(stage, {}).get("iterations", iterations))
+
+
+def validation_score(psnr, rmse):
+    """Higher is better: PSNR, or -20 log10 RMSE (the same in dB) without images."""
+    return psnr if np.isfinite(psnr) else -20.0 * np.log10(max(rmse, 1e-12))
+
+
+def early_stop(state: FitState, plan, deadline, score):
+    """The stop test of a budgeted stage: its share of time is spent, or its
+    validation ``score()`` (evaluated every ``plan.eval_every`` iterations)
+    has stopped improving."""
+    stopper = EarlyStop()
+
+    def stop(it):
+        if time.perf_counter() > deadline:
+            return "its share of the budget is spent"
+        if state.validation_frames and it % plan.eval_every == 0 and stopper.update(score()):
+            return "validation score %.3f no better than %.3f for %d evaluations" % (
+                stopper.history[-1], stopper.best, stopper.patience)
+        return None
+    return stop
 
 
 def freeze(state: FitState, initialise):

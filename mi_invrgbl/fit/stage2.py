@@ -45,8 +45,7 @@ from ..physics.fields import BY_NAME, MATERIAL
 from .render import (Response, VirtualNode, camera_shaded, freeze,
                      lidar_shaded)
 from .steps import safe_step
-from .variables import (GaussianVariable, Optimizer, ResponseVariable, SkySH, SunDirection,
-                        SunIrradiance)
+from .variables import GaussianVariable, Optimizer, ResponseVariable, SkySH, SunVariable
 from .superpixels import slic_labels
 
 #: Metres above a Gaussian's centre its traced sun visibility starts from.
@@ -140,11 +139,11 @@ class Stage2:
         if cfg.weights.rgb > 0:
             out.append(SkySH(ctx, STAGE2_LR["sky"]))
             if ctx.use_sun:
-                out.append(SunIrradiance(ctx, STAGE2_LR["sun"]))
+                out.append(SunVariable(ctx, "sun_irradiance", STAGE2_LR["sun"]))
             if self.learn_sun_visibility and cfg.learn_sun_direction:
                 # With v_sun stored per Gaussian the direction moves only the
                 # shading (n.l, the specular lobe), never a cached trace.
-                out.append(SunDirection(ctx, STAGE2_LR["sun_direction"]))
+                out.append(SunVariable(ctx, "sun_direction", STAGE2_LR["sun_direction"]))
         if cfg.weights.lidar > 0:
             out += [ResponseVariable(ctx, k, STAGE2_LR[k] if cfg.fit_response else 0.0)
                     for k in ("range_exponent", "angle_exponent", "beam_gains")]

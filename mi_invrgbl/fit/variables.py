@@ -81,43 +81,41 @@ class SkySH(Variable):
         self.state.params[self.state.sky_key] = value * mask if mask is not None else value
 
 
-@dataclass(eq=False)
-class SunIrradiance(Variable):
-    state: object
-    lr: float
-    key: str = "sky.sun_irradiance"
-    in_scene: bool = True
+def _positive(value):
+    # Never exactly 0: shsun would then drop the sun (has_sun), the lighting
+    # cache key would change and the sun could not come back.
+    return dr.maximum(value, 1e-4)
 
-    def read(self):
-        return self.state.params[self.state.sun_key]
 
-    def write(self, value):
-        self.state.params[self.state.sun_key] = value
-
-    def clamp(self, value):
-        # Never exactly 0: shsun would then drop the sun (has_sun), the
-        # lighting cache key would change and the sun could not come back.
-        return dr.maximum(value, 1e-4)
+def _above_horizon(value):
+    # A unit vector above the horizon (2 degrees at least).
+    d = dr.normalize(value)
+    d.z = dr.maximum(d.z, 0.035)
+    return dr.normalize(d)
 
 
 @dataclass(eq=False)
-class SunDirection(Variable):
+class SunVariable(Variable):
+    """The sun's ``sun_irradiance`` or ``sun_direction`` (a ``shsun`` parameter)."""
     state: object
+    part: str
     lr: float
-    key: str = "sky.sun_direction"
     in_scene: bool = True
 
+    CLAMPS = {"sun_irradiance": _positive, "sun_direction": _above_horizon}
+
+    @property
+    def key(self):
+        return "sky." + self.part
+
     def read(self):
-        return self.state.params[self.state.sun_dir_key]
+        return self.state.params[getattr(self.state.sky, self.part)]
 
     def write(self, value):
-        self.state.params[self.state.sun_dir_key] = value
+        self.state.params[getattr(self.state.sky, self.part)] = value
 
     def clamp(self, value):
-        # A unit vector above the horizon (2 degrees at least).
-        d = dr.normalize(value)
-        d.z = dr.maximum(d.z, 0.035)
-        return dr.normalize(d)
+        return self.CLAMPS[self.part](value)
 
 
 #: LiDAR response parameters: valid ranges.
@@ -178,6 +176,13 @@ class Optimizer:
         """Write the detached values into their homes."""
         for v, value in self.items():
             v.write(dr.detach(value))
+
+    def scale_learning_rates(self, factor, which):
+        """Set the learning rate of every handle ``which(handle)`` accepts to
+        ``factor`` times its own (a schedule)."""
+        for k, v in self.variables.items():
+            if which(v):
+                self.adam.set_learning_rate({k: float(v.lr * factor)})
 
     def moments(self, key):
         """(t, m, v) of one variable as numpy (m, v flat)."""
