@@ -69,6 +69,7 @@ import numpy as np
 
 from .. import outdir
 from ..errors import UserError
+from .images import read_image_uint8
 from . import init_gaussians as ig
 from .objects import ObjectTrack, tracks_to_objects, in_box, box_surface_samples
 
@@ -272,19 +273,6 @@ def _scaled_size(W0, H0, scale):
     return W, H, (W0, H0)        # no exact crop: scales differ by < 1 pixel over the image
 
 
-def _read_image_uint8(path, size, crop=None):
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise UserError(f"{path}: not a readable image")
-    if crop is not None:
-        img = img[:crop[1], :crop[0]]
-    if (img.shape[1], img.shape[0]) != tuple(size):
-        img = cv2.resize(img, tuple(size), interpolation=cv2.INTER_AREA)
-    return np.ascontiguousarray(img[:, :, ::-1])     # RGB uint8
-
-
 # ----------------------------------------------------------------------------
 # The import
 # ----------------------------------------------------------------------------
@@ -358,7 +346,7 @@ def _read(data, opts, log):
             continue
         kept.append(p)
         scans.append((pts, inten))
-        images.append(_read_image_uint8(drive.image_paths[p], (W, H), crop))
+        images.append(read_image_uint8(drive.image_paths[p], (W, H), crop))
     if not kept:
         raise UserError(f"{drive.root}: no frame with a usable LiDAR sweep")
     log("[import] %s (%s layout): %d frames%s, image %dx%d -> %dx%d"

@@ -415,7 +415,7 @@ def import_step(src, state, opts, log, options: TriangulationOptions | None = No
     Gaussians: the median of the LiDAR's (they are never scanned). They
     count towards ``--max-points`` (at most a quarter of it): as many LiDAR
     Gaussians, drawn at random, make room."""
-    from .importer import _read_image_uint8
+    from .images import read_image_uint8
 
     options = options or TriangulationOptions()
     drive = src.drive
@@ -427,7 +427,7 @@ def import_step(src, state, opts, log, options: TriangulationOptions | None = No
         return
 
     def load(i):
-        return _read_image_uint8(drive.image_paths[positions[i]], (W0, H0))
+        return read_image_uint8(drive.image_paths[positions[i]], (W0, H0))
 
     pts = triangulate_frames(load, state.cam_poses, drive.K, training, options, log=log)
     n_all = len(pts)
