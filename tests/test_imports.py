@@ -22,7 +22,8 @@ rank   part (modules)                                              job
                                                                    readers and writers
 2      ``plugins``                                                 the Mitsuba plugins
 1      ``physics``                                                 shared physics under the plugins
-0      ``base``: the package itself, ``errors``, ``variant``        importable from anywhere
+0      ``base``: the package itself, ``errors``, ``variant``,       importable from anywhere
+       ``outdir`` (output folders)
 =====  ==========================================================  ==============================
 
 ``io.importer`` sits with the jobs, above ``io``: it composes the readers, the
@@ -53,7 +54,8 @@ LAYERS = (
     ("mi_invrgbl.physics", "physics", 1),
     ("mi_invrgbl.errors", "base", 0),
     ("mi_invrgbl.variant", "base", 0),
-    ("mi_invrgbl", "base", 0),
+    ("mi_invrgbl.outdir", "base", 0),
+    ("mi_invrgbl", "base", 0),          # the package's __init__ only: a new module needs a row
 )
 
 
@@ -67,7 +69,7 @@ def module_name(path: Path) -> str:
 def layer(module: str):
     best = None
     for prefix, part, rank in LAYERS:
-        if module == prefix or module.startswith(prefix + "."):
+        if module == prefix or (module.startswith(prefix + ".") and prefix != "mi_invrgbl"):
             if best is None or len(prefix) > len(best[0]):
                 best = (prefix, part, rank)
     return None if best is None else best[1:]
