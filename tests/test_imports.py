@@ -136,9 +136,9 @@ def test_imports_run_downward_only():
 
 
 @pytest.mark.parametrize("module, text, expected", [
-    ("mi_invrgbl.scene.frames", "from ..commands.render import load_scene\n",
+    ("mi_invrgbl.scene.frames", "from ..commands.render_sensors import load_scene\n",
      "is above scene"),
-    ("mi_invrgbl.apps.frames", "from ..synthetic.trajectory import KITTI_FROM_MITSUBA\n",
+    ("mi_invrgbl.apps.frame_set", "from ..synthetic.trajectory import KITTI_FROM_MITSUBA\n",
      "apps and synthetic are parts of one layer"),
     ("mi_invrgbl.physics.brdf", "def f():\n    import mi_invrgbl.plugins.gaussians\n",
      "is above physics"),

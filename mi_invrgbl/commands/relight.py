@@ -9,7 +9,7 @@ picks the new lighting; shadows are traced for the new sun. Writes the edited
 from __future__ import annotations
 
 from ..apps import lighting_edit, relight, sequence
-from ..apps.frames import FrameSet
+from ..apps.frame_set import FrameSet
 from ..scene.xml import SceneDoc
 
 
