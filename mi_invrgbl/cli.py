@@ -16,7 +16,7 @@ import sys
 from .errors import UserError
 
 #: Sub-command modules in the order ``--help`` lists them.
-COMMANDS = ("render", "make_scene", "import_data", "fit", "eval", "relight",
+COMMANDS = ("render_sensors", "make_scene", "import_data", "fit", "eval", "relight",
             "night", "insert", "lidar")
 
 

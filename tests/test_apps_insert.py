@@ -263,9 +263,9 @@ def test_track_moves_the_object_per_frame(files, tmp_path, kind):
     assert (out / "frame_0000.png").is_file() and (out / "frame_0001.png").is_file()
     # Frame 1 (camera cam_b) must show the sphere at the second pose.
     scene = mi.load_file(str(out / "scene.xml"))
-    from mi_invrgbl.apps.frames import FrameSet
+    from mi_invrgbl.apps.frame_set import FrameSet
     from mi_invrgbl.apps.insert import TrackHook
-    from mi_invrgbl.apps.posing import pose_from_values
+    from mi_invrgbl.apps.pose_input import pose_from_values
     frames = FrameSet(str(files / "path.xml"), scene)
     hook = TrackHook("inserted", [pose_from_values(p) for p in poses], pose_from_values(poses[0]))
     for frame in frames.all:

@@ -66,7 +66,7 @@ def noise_floor(street, frame):
 
 
 def _noise_floor(street, frame):
-    from mi_invrgbl.apps.frames import FrameSet
+    from mi_invrgbl.apps.frame_set import FrameSet
     path = str(street / "gt" / "scene_time_b.xml")
     scene = mi.load_file(path)
     frames = FrameSet(path, scene)
@@ -238,7 +238,7 @@ def test_edited_scene_keeps_the_originals_frames(street, tmp_path):
 def test_relight_converges_to_time_b(street, tmp_path):
     """At 256 spp the relit frame and an equally converged time-B render agree to > 35 dB
     (measured 41.7 dB at 128x48)."""
-    from mi_invrgbl.apps.frames import FrameSet
+    from mi_invrgbl.apps.frame_set import FrameSet
     spp = 256
     out = tmp_path / "relit"
     assert main(["relight", str(street / "gt" / "scene_time_a.xml"), "-o", str(out), "--spp", str(spp),

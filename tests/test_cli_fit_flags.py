@@ -7,7 +7,7 @@ import pytest
 from mi_invrgbl.cli import build_parser
 from mi_invrgbl.commands.fit import FLAGS, config_from_args
 from mi_invrgbl.errors import UserError
-from mi_invrgbl.fit.runner import FitConfig
+from mi_invrgbl.fit.config import FitConfig
 
 
 def parse(*args):

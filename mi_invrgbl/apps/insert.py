@@ -280,5 +280,5 @@ class TrackHook:
 
 def scene_bounds_without(scene, shape_id: str):
     """Bounding box of every shape but ``shape_id`` (the target scene's extent)."""
-    from .posing import scene_bounds
+    from .pose_input import scene_bounds
     return scene_bounds(scene, exclude=shape_id)

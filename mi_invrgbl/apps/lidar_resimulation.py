@@ -130,7 +130,7 @@ def _custom_sensor(path, azimuth_steps, out_dir, near, far):
 
 def recorded_sensor(scene_path: str) -> dict | None:
     """The LiDAR an imported/fitted or synthetic scene was recorded with (or None)."""
-    from .frames import find_frames_json
+    from .frame_set import find_frames_json
     frames = find_frames_json(scene_path)
     if frames is not None:
         with open(frames) as f:
@@ -150,7 +150,7 @@ def recorded_sensor(scene_path: str) -> dict | None:
 
 def synthetic_info(scene_path: str) -> dict | None:
     """The generator's trajectory.json beside a synthetic ground-truth scene (or None)."""
-    from .frames import origin_scene
+    from .frame_set import origin_scene
     path = os.path.join(os.path.dirname(origin_scene(scene_path)), "trajectory.json")
     if not os.path.isfile(path):
         return None
@@ -170,7 +170,7 @@ def default_intensity_scale(scene_path: str) -> float:
 def lidar_integrator(doc: SceneDoc, model: str | None) -> tuple[ET.Element, str]:
     """The ``lidar_return`` integrator to use, and where its parameters come from."""
     import copy
-    from .frames import origin_scene
+    from .frame_set import origin_scene
     own = doc.integrator()
     fitted = os.path.join(os.path.dirname(origin_scene(doc.path)), "scene_lidar.xml")
     if own is not None and own.get("type") == "lidar_return":
@@ -252,7 +252,7 @@ def lidar_doc(doc: SceneDoc, spec: SensorSpec, first_pose, model=None, log=print
     fit_beam_gains(integrator, spec.height, log)
     out.set_integrator(integrator)
     log("[lidar] LiDAR response from %s" % source)
-    from .frames import origin_scene
+    from .frame_set import origin_scene
     materials = os.path.join(os.path.dirname(origin_scene(doc.path)), "materials.json")
     if os.path.isfile(materials):
         n = true_lidar_materials(out, materials)

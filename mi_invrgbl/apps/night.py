@@ -94,10 +94,10 @@ def night_lighting(base: Lighting | None, sky_scale: float, sky_radiance=None) -
 
 def recorded_streetlights(scene_path: str):
     """Night lamps of the synthetic street, if this scene is (or was fitted from) one."""
-    from .frames import origin_scene
+    from .frame_set import origin_scene
     folder = os.path.dirname(origin_scene(scene_path))
     candidates = [os.path.join(folder, "lights.json")]
-    from .frames import find_frames_json
+    from .frame_set import find_frames_json
     frames_json = find_frames_json(scene_path)
     if frames_json is not None:
         try:

@@ -17,7 +17,7 @@ import numpy as np
 from ..errors import UserError
 from ..scene.loading import load_scene, parse_defines
 from . import video
-from .frames import FrameSet, write_origin
+from .frame_set import FrameSet, write_origin
 
 
 def render_frames(scene, frames: FrameSet, out_dir: str, spp: int = 0, hooks=(),

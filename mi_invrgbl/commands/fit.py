@@ -17,7 +17,7 @@ MAX_WEIGHT = 1e6
 
 
 #: The fit's options: (flag, FitConfig field, help, argparse options). Types
-#: and defaults come from :class:`~mi_invrgbl.fit.runner.FitConfig`, the one
+#: and defaults come from :class:`~mi_invrgbl.fit.config.FitConfig`, the one
 #: source of defaults; ``invert`` marks a switch that turns a default-on
 #: field off.
 FLAGS = (
@@ -72,7 +72,7 @@ FLAGS = (
 
 def _defaults():
     import dataclasses
-    from ..fit.runner import FitConfig
+    from ..fit.config import FitConfig
     return {f.name: getattr(FitConfig(), f.name) for f in dataclasses.fields(FitConfig)}
 
 
@@ -105,7 +105,7 @@ def add_parser(sub):
 
 def config_from_args(args):
     from ..fit.losses import LossWeights
-    from ..fit.runner import FitConfig
+    from ..fit.config import FitConfig
     values = {name: getattr(args, name) for _, name, _, _ in FLAGS}
     try:
         values["weights"] = LossWeights.parse(values["weights"])

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 from .. import outdir
 from ..apps import insert, sequence
-from ..apps.frames import FrameSet
-from ..apps.posing import check_inside, parse_pose, read_trajectory
+from ..apps.frame_set import FrameSet
+from ..apps.pose_input import check_inside, parse_pose, read_trajectory
 from ..scene.xml import SceneDoc
 from ..errors import UserError
 from .relight import _floats

@@ -17,8 +17,8 @@ import numpy as np
 
 from .. import outdir
 from ..apps import lidar_resimulation, sequence, video
-from ..apps.frames import FrameSet, parse_selection
-from ..apps.posing import check_inside, parse_pose, read_trajectory, scene_bounds
+from ..apps.frame_set import FrameSet, parse_selection
+from ..apps.pose_input import check_inside, parse_pose, read_trajectory, scene_bounds
 from ..scene.xml import SceneDoc
 from ..errors import UserError
 

@@ -11,8 +11,8 @@ from __future__ import annotations
 from .. import outdir
 from ..apps import lighting_edit, night, sequence
 from ..scene import xml as xml_edit
-from ..apps.frames import FrameSet
-from ..apps.posing import parse_pose
+from ..apps.frame_set import FrameSet
+from ..apps.pose_input import parse_pose
 from ..scene.xml import SceneDoc
 from ..errors import UserError
 from .relight import _floats

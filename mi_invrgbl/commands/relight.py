@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from .. import outdir
 from ..apps import lighting_edit, relight, sequence
-from ..apps.frames import FrameSet
+from ..apps.frame_set import FrameSet
 from ..scene.xml import SceneDoc
 
 

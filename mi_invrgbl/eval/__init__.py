@@ -9,6 +9,7 @@
 * :mod:`.baselines`    -- the nearest-neighbour LiDAR intensity lookup.
 * :mod:`.scoring`      -- :func:`.scoring.evaluate`: every selected frame
   scored, the table, ``metrics.json``.
+* :mod:`.baselines`    -- the nearest-neighbour LiDAR intensity baseline.
 
 ``mi-invrgbl eval`` (:mod:`mi_invrgbl.commands.eval`) only parses its
 arguments and calls :func:`.scoring.evaluate`; the benchmarks under

@@ -405,3 +405,52 @@ def camera_gaussians(pts: TriangulatedPoints, K: np.ndarray, knn: int = 8,
 def held_out(index: int) -> bool:
     """The evaluation split of ``import``: every fifth frame is held out."""
     return index % 5 == 4
+
+
+def import_step(src, state, opts, log, options: TriangulationOptions | None = None):
+    """``mi-invrgbl import``'s camera-geometry step: triangulate the training
+    frames (full-resolution images, the drive's own intrinsics), keep the
+    points the LiDAR lacks and append them as Gaussians to the background
+    (``state.background``, before colours). LiDAR albedo of those
+    Gaussians: the median of the LiDAR's (they are never scanned). They
+    count towards ``--max-points`` (at most a quarter of it): as many LiDAR
+    Gaussians, drawn at random, make room."""
+    from .images import read_image_uint8
+
+    options = options or TriangulationOptions()
+    drive = src.drive
+    positions = state.positions
+    W0, H0 = drive.image_size
+    training = [i for i in range(len(positions)) if not held_out(i)]
+    if len(training) < 2:
+        log("[import] fewer than two training frames: no triangulation")
+        return
+
+    def load(i):
+        return read_image_uint8(drive.image_paths[positions[i]], (W0, H0))
+
+    pts = triangulate_frames(load, state.cam_poses, drive.K, training, options, log=log)
+    n_all = len(pts)
+    pts = pts.subset(far_from(pts.points, state.bg.points, options.lidar_clearance))
+    bg = state.background
+    n_bg = len(bg["centers"])
+    # The camera-only Gaussians take their place inside --max-points: the
+    # same number of LiDAR Gaussians (drawn at random, seeded) make room.
+    cap = min(len(pts), opts.max_points // 4)
+    if cap < len(pts):
+        far_first = np.argsort(-pts.depth, kind="stable")[:cap]
+        pts = pts.subset(np.sort(far_first))
+    room = max(0, n_bg + len(pts) - opts.max_points)
+    if room:
+        rng = np.random.default_rng([opts.seed, 2])
+        keep = np.sort(rng.choice(n_bg, n_bg - room, replace=False))
+        for key in ("centers", "scales", "quaternions", "normals", "lidar_albedo"):
+            bg[key] = bg[key][keep]
+    g = camera_gaussians(pts, drive.K)
+    g["lidar_albedo"][:] = float(np.median(bg["lidar_albedo"])) if len(bg["lidar_albedo"]) else 0.0
+    for key in ("centers", "scales", "quaternions", "normals", "lidar_albedo"):
+        bg[key] = np.concatenate([bg[key], g[key].astype(bg[key].dtype)])
+    state.counts["camera_gaussians"] = len(pts)
+    state.counts["background_gaussians"] = int(len(bg["centers"]))
+    log("[import] %d triangulated points, %d where the LiDAR has no point within %.2f m "
+        "-> camera-only Gaussians" % (n_all, len(pts), options.lidar_clearance))
