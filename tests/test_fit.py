@@ -258,3 +258,117 @@ def test_cli_flags_reach_the_config():
     assert default.sun_visibility == "learn"
     cfg = parse("--keep-sky-lookalikes", "--learn-sun-direction", "--sun-visibility", "trace")
     assert not cfg.prune_sky_lookalikes and cfg.learn_sun_direction and cfg.sun_visibility == "trace"
+
+
+def _called_from(module):
+    """True when a function of ``module`` is on the call stack."""
+    import sys
+    frame = sys._getframe(1)
+    while frame is not None:
+        if frame.f_globals.get("__name__") == module.__name__:
+            return True
+        frame = frame.f_back
+    return False
+
+
+def test_model_selection_never_touches_held_out_frames(scene_path, tmp_path, monkeypatch):
+    # Held-out frames (index % 5 == 4) are for `eval` alone: the choices
+    # (lighting, LiDAR lobe, sky samples M) are scored on the validation split
+    # of the training frames. Every render and trace made on behalf of
+    # model_selection is recorded here with the frame it served.
+    from mi_invrgbl.fit import model_selection, stage2
+    from mi_invrgbl.physics import hits
+    held_rays = []
+    touched = {"held_out": [], "scored": set(), "traced": 0}
+    real_render, real_trace = stage2.Stage2.render_frame, hits.trace
+
+    def render_spy(self, frame, *a, **k):
+        if _called_from(model_selection):
+            if frame.held_out:
+                touched["held_out"].append(frame.index)
+            else:
+                touched["scored"].add(frame.index)
+        return real_render(self, frame, *a, **k)
+
+    def trace_spy(scene, rays, *a, **k):
+        if _called_from(model_selection):
+            touched["traced"] += 1
+            if any(rays is r for r in held_rays):
+                touched["held_out"].append("trace")
+        return real_trace(scene, rays, *a, **k)
+
+    real_load = __import__("mi_invrgbl.fit.init", fromlist=["load_state"]).load_state
+
+    def load_spy(*a, **k):
+        state = real_load(*a, **k)
+        for f in state.held_out_frames:
+            held_rays.extend(x.rays for x in (f.camera, f.lidar) if x is not None)
+        return state
+
+    from mi_invrgbl.fit import runner
+    monkeypatch.setattr(runner, "load_state", load_spy)
+    monkeypatch.setattr(stage2.Stage2, "render_frame", render_spy)
+    monkeypatch.setattr(hits, "trace", trace_spy)
+    metrics = run_fit(scene_path, small_config(tmp_path, stage2_iterations=8), log=lambda *a: None)
+    assert held_rays and touched["traced"] > 0          # the spies saw the selection work
+    assert touched["held_out"] == [], touched
+    assert metrics["frames"]["validation"] == [2] and metrics["frames"]["held_out"] == [4]
+    assert 2 in touched["scored"]      # (the Lambertian refit steps on training frames too)
+    sel = metrics["selection"]
+    assert sel["lidar_lobe"]["scored_on"] == "validation" and sel["samples"]["scored_on"] == "validation"
+    assert 2 not in metrics["frames"]["train"]
+    assert np.isfinite(metrics["heldout_psnr"])            # held-out frames are still reported
+
+
+def test_resume_refuses_a_checkpoint_of_another_fit(scene_path, tmp_path):
+    from mi_invrgbl.errors import UserError
+    out = tmp_path / "fit"
+    run_fit(scene_path, small_config(out, stage1_iterations=4, stage2_iterations=4), log=lambda *a: None)
+    with pytest.raises(UserError, match="another fit.*fit_width") as info:
+        run_fit(scene_path, small_config(out, fit_width=32, resume=True), log=lambda *a: None)
+    assert "\n" not in str(info.value)
+    other = _edit_frames(scene_path, tmp_path, lambda f: f.update(time=f["time"] + 1.0))
+    with pytest.raises(UserError, match="another fit.*frames.json"):
+        run_fit(other, small_config(out, resume=True), log=lambda *a: None)
+    # The same scene and options resume.
+    metrics = run_fit(scene_path, small_config(out, stage1_iterations=4, stage2_iterations=6,
+                                               resume=True), log=lambda *a: None)
+    assert metrics["interrupted"] is False
+
+
+def test_densify_carries_adam_moments(scene_path, tmp_path):
+    # Kept and cloned Gaussians continue with their Adam moments; split
+    # halves (moved and shrunk) start from zero. Rows are matched by their
+    # centres, which keeping and cloning copy exactly.
+    from mi_invrgbl.fit.init import load_state
+    from mi_invrgbl.fit.stage1 import Stage1
+    # (The scene's Gaussians start at opacity 0.95 and sizes 0.15-0.18 m: these
+    # thresholds prune, clone and split some of each after a few steps.)
+    cfg = small_config(tmp_path, densify_fraction=0.3, densify_grad=0.0, prune_opacity=0.95,
+                       split_scale=0.16)
+    state = load_state(scene_path, cfg, log=lambda *a: None)
+    s1 = Stage1(state)
+    for it in range(1, 4):
+        s1.iteration(it)
+    key = "background.center"
+    t0, m0, v0 = s1.opt.moments(key)
+    s1.pull()
+    old = state.model.nodes["background"].numpy("center")
+    report = s1.densify()
+    pruned, cloned, split, count = report["background"]
+    assert pruned > 0 and cloned > 0 and split > 0, report
+    t1, m1, v1 = s1.opt.moments(key)
+    new = state.model.nodes["background"].numpy("center")
+    assert new.shape[0] == count and m1.size == 3 * count
+    assert int(np.ravel(t1)[0]) == int(np.ravel(t0)[0])
+    where = {tuple(c): i for i, c in enumerate(old)}
+    m0, v0, m1, v1 = (a.reshape(-1, 3) for a in (m0, v0, m1, v1))
+    parent = np.array([where.get(tuple(c), -1) for c in new])
+    kept = parent >= 0
+    assert kept.sum() == count - 2 * split
+    assert np.array_equal(m1[kept], m0[parent[kept]]) and np.array_equal(v1[kept], v0[parent[kept]])
+    assert np.abs(m0[parent[kept]]).max() > 0           # the moments were not zero to begin with
+    assert not m1[~kept].any() and not v1[~kept].any()
+    # The optimiser goes on stepping over the new arrays.
+    loss, _, ok = s1.iteration(4)
+    assert ok and np.isfinite(loss)

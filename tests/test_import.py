@@ -529,7 +529,8 @@ def test_full_kitti_excerpt(kitti_dir, tmp_path):
 
 
 def test_extend_walls_only_where_the_top_beam_cut_a_facade():
-    from mi_invrgbl.io.importer import ImportOptions, _extend_walls
+    from mi_invrgbl.io.importer import (BackgroundPoints, ImportOptions, ImportState,
+                                        _extend_walls)
     # Sensor at the origin, top beam 10 degrees up. A facade 8 m away seen up
     # to the top beam (z = 8 tan 10deg = 1.41 m) and a 1.2 m box at 4 m whose
     # top edge lies well below the top beam (-4.3 degrees).
@@ -540,18 +541,19 @@ def test_extend_walls_only_where_the_top_beam_cut_a_facade():
     box = np.array([(4.0, y, z) for y in ys for z in np.linspace(-1.5, -0.3, 10)])
     pts = np.concatenate([wall, box]).astype(np.float32)
     n = len(pts)
-    state = {"bg": {"points": pts, "intensity": np.full(n, 0.5, np.float32),
-                    "range": np.linalg.norm(pts, axis=1).astype(np.float32),
-                    "frame": np.zeros(n, np.int32)},
-             "poses": np.eye(4)[None], "lidar_table": np.linspace(top, np.radians(-25), 64),
-             "counts": {}}
+    state = ImportState(positions=[0], scans=[], images=[], K=np.eye(3), size=(1, 1), crop=None,
+                        skipped=[], poses=np.eye(4)[None],
+                        lidar_table=np.linspace(top, np.radians(-25), 64),
+                        bg=BackgroundPoints(pts, np.full(n, 0.5, np.float32),
+                                            np.linalg.norm(pts, axis=1).astype(np.float32),
+                                            np.zeros(n, np.int32)))
     _extend_walls(state, ImportOptions(extend_walls=3.0), log=lambda *a: None)
-    new = state["bg"]["points"][n:]
-    assert state["counts"]["wall_extension_points"] == len(new) > 0
+    new = state.bg.points[n:]
+    assert state.counts["wall_extension_points"] == len(new) > 0
     assert np.allclose(new[:, 0], 8.0)                     # only the facade grows
     assert new[:, 2].max() == pytest.approx(8 * np.tan(top) + 3.0, abs=0.16)
-    assert np.all(state["bg"]["intensity"][n:] == 0.5)
-    assert len(state["bg"]["frame"]) == len(state["bg"]["points"])
+    assert np.all(state.bg.intensity[n:] == 0.5)
+    assert len(state.bg.frame) == len(state.bg.points) == len(state.bg.extended)
 
 
 def test_extend_walls_option_is_checked():

@@ -9,16 +9,17 @@ import numpy as np
 import pytest
 
 from fit_scene import build
-from mi_invrgbl.fit.runner import FitConfig, FitContext, select_lighting
+from mi_invrgbl.fit.init import load_state
+from mi_invrgbl.fit.model_selection import choose_lighting
+from mi_invrgbl.fit.runner import FitConfig, apply_lighting
 from mi_invrgbl.fit.selection import PatchRegression, surface_patches
 
 
 def _select(tmp_path, sun):
     path = build(str(tmp_path), n_frames=5, width=96, height=32, columns=128, sun=sun)
-    ctx = FitContext(path, FitConfig(output=str(tmp_path / "fit"), fit_width=96, lidar_columns=128,
+    ctx = load_state(path, FitConfig(output=str(tmp_path / "fit"), fit_width=96, lidar_columns=128,
                                      sun_candidates=32, seed=0), lambda *a: None)
-    ctx.load()
-    select_lighting(ctx)
+    apply_lighting(ctx, choose_lighting(ctx))
     chosen = ctx.selection["sun"]
     print(chosen)
     return ctx, chosen

@@ -22,7 +22,7 @@ import drjit as dr
 
 from mi_invrgbl.errors import UserError
 from mi_invrgbl.synthetic import StreetConfig, generate_street
-from mi_invrgbl.synthetic import labels as labels_mod, render, writers
+from mi_invrgbl.synthetic import labels as labels_mod, rgb_frames, writers
 import variant_choice
 
 TINY = dict(seed=3, frames=4, width=64, height=24, azimuth_steps=256, spp=4)
@@ -189,7 +189,7 @@ def test_ground_truth_maps(street, info):
 
 def _scene_at(street, info, frame):
     scene = mi.load_file(str(street / "gt" / "scene_time_a.xml"))
-    poser = render.FramePoser(scene, np.array(info["traj"]["world_from_moving_car"]))
+    poser = rgb_frames.FramePoser(scene, np.array(info["traj"]["world_from_moving_car"]))
     poser.set_frame(frame)
     return scene
 

@@ -32,7 +32,7 @@ import numpy as np
 
 from ..errors import UserError, mitsuba_message
 from . import lighting_edit
-from ..scene import xml as xml_edit
+from ..scene import xml
 from ..scene.posing import place
 from ..scene.xml import SceneDoc
 
@@ -100,7 +100,7 @@ def _gaussian_bounds(path: str):
 def _mesh_bounds(shape_elem: ET.Element, what: str):
     """Load one mesh element alone (with its to_world): bounds, or one clear error."""
     import mitsuba as mi
-    root = xml_edit.element("scene")
+    root = xml.element("scene")
     root.set("version", "3.0.0")
     e = copy.deepcopy(shape_elem)
     for child in list(e):       # the BSDF does not matter for the bounds
@@ -120,10 +120,10 @@ def _mesh_bounds(shape_elem: ET.Element, what: str):
 
 
 def cooktorrance(ident, albedo, roughness, lidar_albedo) -> ET.Element:
-    return xml_edit.element("bsdf", "cooktorrance", ident, [
-        xml_edit.rgb("albedo", albedo),
-        xml_edit.param("float", "roughness", roughness),
-        xml_edit.param("float", "lidar_albedo", lidar_albedo),
+    return xml.element("bsdf", "cooktorrance", ident, [
+        xml.rgb("albedo", albedo),
+        xml.param("float", "roughness", roughness),
+        xml.param("float", "lidar_albedo", lidar_albedo),
     ])
 
 
@@ -141,16 +141,16 @@ def load_object(spec: str, target: SceneDoc, ident: str = "inserted", albedo=(0.
     shape_id = target.unique_id(ident)
     if ext == ".ply" and is_gaussian_ply(path):
         lo, hi, n = _gaussian_bounds(path)
-        shape = xml_edit.element("shape", "gaussians", shape_id,
-                                 [xml_edit.param("string", "filename", os.path.abspath(path))])
+        shape = xml.element("shape", "gaussians", shape_id,
+                                 [xml.param("string", "filename", os.path.abspath(path))])
         base = np.eye(4) if keep_origin else _translate(-_bottom_centre(lo, hi))
         return ObjectSource([shape], "gaussians", base, np.eye(4),
                             "%d Gaussians from %s" % (n, path))
     if ext not in MESH_TYPES:
         raise UserError("--object %s: expected OTHER.xml:NODE, a .obj or .ply mesh, or a "
                         "Gaussian .ply" % spec)
-    shape = xml_edit.element("shape", MESH_TYPES[ext], shape_id,
-                             [xml_edit.param("string", "filename", os.path.abspath(path))])
+    shape = xml.element("shape", MESH_TYPES[ext], shape_id,
+                             [xml.param("string", "filename", os.path.abspath(path))])
     lo, hi, faces = _mesh_bounds(shape, path)
     bsdf_id = target.unique_id(ident + "_material")
     shape.append(ET.Element("ref", {"id": bsdf_id}))
@@ -174,7 +174,7 @@ def _from_scene(path, node, target, ident, keep_origin) -> ObjectSource:
         shape.remove(t)
     elements = _copy_references(other, shape, target, ident)
     if shape.get("type") == "gaussians":
-        filename = xml_edit.child_param(shape, "filename")
+        filename = xml.child_param(shape, "filename")
         if filename is None:
             raise UserError("%s: node '%s' has no 'filename' to copy its Gaussians from"
                             % (path, node))
@@ -237,20 +237,20 @@ def insert_doc(doc: SceneDoc, obj: ObjectSource, pose) -> tuple[SceneDoc, bool]:
     old = [c for c in shape if c.tag == "transform" and c.get("name") == "to_world"]
     if old:   # a mesh node's own to_world: compose it under the placement
         shape.remove(old[0])
-        shape.insert(0, xml_edit.element("transform", None, None, []))
+        shape.insert(0, xml.element("transform", None, None, []))
         shape[0].set("name", "to_world")
         for child in old[0]:
             shape[0].append(child)
         mat = ET.SubElement(shape[0], "matrix")
         mat.set("value", " ".join("%.9g" % v for v in m.reshape(-1)))
     else:
-        shape.insert(0, xml_edit.transform(m))
+        shape.insert(0, xml.transform(m))
     for k, e in enumerate(elements):
         out.add(e, "inserted: %s" % obj.description if k == 0 else None)
     switched = False
     integrator = out.integrator()
     if obj.kind == "gaussians" and (integrator is None or integrator.get("type") != "invrgbl"):
-        out.set_integrator(xml_edit.element("integrator", "invrgbl"))
+        out.set_integrator(xml.element("integrator", "invrgbl"))
         switched = True
     # A fit may store its sun visibility per Gaussian; the inserted object
     # casts its shadow only if visibility is traced.

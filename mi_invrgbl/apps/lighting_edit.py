@@ -35,7 +35,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 
 from ..errors import UserError
-from ..scene import xml as xml_edit
+from ..scene import xml
 from ..scene.xml import SKY_TYPES, SceneDoc
 
 #: Angular radius (degrees) of the real sun, used for directional lights.
@@ -98,14 +98,8 @@ class Lighting:
         """This lighting as an ``<emitter type="shsun">`` element."""
         from ..physics.sh import order_from_count
         sh = np.asarray(self.sh, np.float64).reshape(-1, 3)
-        text = ",  ".join(" ".join("%.7g" % v for v in row) for row in sh)
-        return xml_edit.element("emitter", "shsun", ident, [
-            xml_edit.param("integer", "order", order_from_count(sh.shape[0])),
-            xml_edit.param("string", "sh", text),
-            xml_edit.vector("sun_direction", self.sun_direction),
-            xml_edit.rgb("sun_irradiance", self.sun_irradiance),
-            xml_edit.param("float", "sun_radius", self.sun_radius),
-        ])
+        return xml.shsun_emitter(ident, sh, order_from_count(sh.shape[0]), self.sun_direction,
+                                 self.sun_irradiance, self.sun_radius)
 
     def describe(self) -> str:
         sky = self.sky_radiance_mean()
@@ -124,7 +118,7 @@ class Lighting:
 
 def lights_only_scene(doc: SceneDoc):
     """Load only the emitters (and top-level textures, defaults) of ``doc``."""
-    return xml_edit.load_parts(doc, ("texture", "emitter"), "its emitters")
+    return xml.load_parts(doc, ("texture", "emitter"), "its emitters")
 
 
 def lighting_of_scene(scene, source: str = "") -> Lighting | None:
@@ -264,5 +258,5 @@ def trace_sun_visibility(doc: SceneDoc) -> bool:
     integrator = doc.integrator()
     if integrator is None or integrator.get("type") != "invrgbl":
         return False
-    xml_edit.set_child_param(integrator, "string", "sun_visibility", "trace")
+    xml.set_child_param(integrator, "string", "sun_visibility", "trace")
     return True

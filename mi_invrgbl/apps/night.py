@@ -26,7 +26,7 @@ import numpy as np
 
 from ..errors import UserError
 from . import lighting_edit
-from ..scene import xml as xml_edit
+from ..scene import xml
 from ..scene.xml import spot_to_world
 from .lighting_edit import Lighting
 from ..scene.xml import SceneDoc
@@ -74,13 +74,8 @@ HEADLIGHT_OFFSETS = {1: [(0.0, -0.95, 0.3)],
 HEADLIGHT_AXIS = (0.0, -0.08, 1.0)
 
 
-def spot_element(ident: str, spec: SpotSpec, to_world) -> "xml_edit.ET.Element":
-    return xml_edit.element("emitter", "spot", ident, [
-        xml_edit.rgb("intensity", spec.rgb()),
-        xml_edit.param("float", "cutoff_angle", spec.cutoff),
-        xml_edit.param("float", "beam_width", spec.beam_width),
-        xml_edit.transform(to_world),
-    ])
+def spot_element(ident: str, spec: SpotSpec, to_world) -> "xml.ET.Element":
+    return xml.spot_emitter(ident, spec.rgb(), to_world, spec.cutoff, spec.beam_width)
 
 
 def night_lighting(base: Lighting | None, sky_scale: float, sky_radiance=None) -> Lighting:

@@ -94,13 +94,13 @@ def add_render_options(p, default_exposure: float = 1.0) -> None:
 
 def apply_integrator_options(doc, args) -> None:
     """``--samples``: the ``invrgbl`` integrator's M."""
-    from ..scene import xml as xml_edit
+    from ..scene import xml
     integrator = doc.integrator()
     if getattr(args, "samples", 0):
         if args.samples < 1:
             raise UserError("--samples must be at least 1")
         if integrator is not None and integrator.get("type") == "invrgbl":
-            xml_edit.set_child_param(integrator, "integer", "samples", args.samples)
+            xml.set_child_param(integrator, "integer", "samples", args.samples)
     if getattr(args, "spp", 0) < 0:
         raise UserError("--spp must be at least 1 (or 0: the sensor's own count)")
 

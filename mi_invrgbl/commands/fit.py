@@ -16,88 +16,115 @@ from ..errors import UserError
 MAX_WEIGHT = 1e6
 
 
+#: The fit's options: (flag, FitConfig field, help, argparse options). Types
+#: and defaults come from :class:`~mi_invrgbl.fit.runner.FitConfig`, the one
+#: source of defaults; ``invert`` marks a switch that turns a default-on
+#: field off.
+FLAGS = (
+    ("--output", "output", "output folder (default: <scene folder>/fit); new, empty, or an "
+     "earlier fit's (with --resume or --overwrite)", {"short": "-o"}),
+    ("--stage1", "stage1_iterations", "stage-1 (geometry) iterations", {}),
+    ("--stage2", "stage2_iterations", "stage-2 (materials) iterations", {}),
+    ("--width", "fit_width", "image width the fit works at", {}),
+    ("--lidar-columns", "lidar_columns", "LiDAR azimuth columns used per scan", {}),
+    ("--batch", "batch_rays", "stage-1 rays per batch (camera and LiDAR each)", {}),
+    ("--samples", "samples", "sky samples M per Gaussian while fitting", {}),
+    ("--render-samples", "render_samples",
+     "sky samples M written into the fitted scene.xml: 'auto' (the smallest of 4/8/16/32 "
+     "within 0.1 dB of the best held-out PSNR) or a number", {}),
+    ("--weights", "weights",
+     "loss weights, e.g. 'rgb2lidar=0,lidar2rgb=0' (paper defaults: lidar=rgb=1, nor=mat=0.1, "
+     "rgb2lidar=lidar2rgb=0.05; 0 switches a term off)", {"text": True}),
+    ("--sigma", "bilateral_sigma", "bilateral sigma of L_rgb->lidar", {}),
+    ("--sun", "sun", "use a sun: decided from the data (auto) or forced",
+     {"choices": ("auto", "on", "off")}),
+    ("--sh-order", "sh_order", "SH order of the sky: decided from the visible sky (auto) or forced",
+     {"choices": ("auto", "0", "1", "2", "3")}),
+    ("--lidar-model", "lidar_model",
+     "LiDAR reflectance: keep the specular lobe only if it lowers held-out error (auto)",
+     {"choices": ("auto", "pbr", "lambertian")}),
+    ("--no-response", "fit_response",
+     "keep the paper's cos/d^2 LiDAR response instead of estimating it", {"invert": True}),
+    ("--per-frame-visibility", "per_frame_visibility",
+     "trace sky/sun visibility per frame so moving objects' shadows move (G x M shadow rays "
+     "per frame; default: once, objects at their first pose)", {}),
+    ("--sun-visibility", "sun_visibility",
+     "per-Gaussian sun visibility: traced at stage 2's start and then learned (the paper's "
+     "v_sun; shadows of occluders the fit lacks), or traced only",
+     {"choices": ("learn", "trace")}),
+    ("--learn-sun-direction", "learn_sun_direction",
+     "also refine the selected sun direction in stage 2 (with learned sun visibility; it moves "
+     "only the n.l shading, so albedo can absorb it)", {}),
+    ("--keep-sky-lookalikes", "prune_sky_lookalikes",
+     "keep stage-1 Gaussians that have the sky's colour and only sky behind them (default: "
+     "removed before stage 2; they cast shadows no roof casts)", {"invert": True}),
+    ("--max-gaussians", "max_gaussians", "densification cap", {}),
+    ("--checkpoint-every", "checkpoint_every", "iterations between checkpoints", {}),
+    ("--eval-every", "eval_every", "iterations between held-out evaluations", {}),
+    ("--resume", "resume", "continue the fit in the output folder from its "
+     "checkpoints/latest.npz", {}),
+    ("--seed", "seed", "random seed", {}),
+)
+
+
+def _defaults():
+    import dataclasses
+    from ..fit.runner import FitConfig
+    return {f.name: getattr(FitConfig(), f.name) for f in dataclasses.fields(FitConfig)}
+
+
 def add_parser(sub):
     p = sub.add_parser("fit", help="fit geometry, materials, light and LiDAR response to an imported scene")
     p.add_argument("scene", help="scene.xml written by 'mi-invrgbl import'")
-    p.add_argument("-o", "--output", default="", help="output folder (default: <scene folder>/fit); "
-                   "new, empty, or an earlier fit's (with --resume or --overwrite)")
+    defaults = _defaults()
+    for flag, name, text, opts in FLAGS:
+        opts = dict(opts)
+        names = [opts.pop("short")] if "short" in opts else []
+        names.append(flag)
+        default = defaults[name]
+        metavar = flag.lstrip("-").upper().replace("-", "_")
+        if opts.pop("invert", False):
+            p.add_argument(*names, dest=name, action="store_false", default=default, help=text)
+        elif isinstance(default, bool):
+            p.add_argument(*names, dest=name, action="store_true", default=default, help=text)
+        elif opts.pop("text", False):
+            p.add_argument(*names, dest=name, default="", metavar=metavar, help=text)
+        else:
+            shown = "" if name == "output" else " (default: %(default)s)"
+            if "choices" not in opts:
+                opts["metavar"] = metavar
+            p.add_argument(*names, dest=name, type=type(default), default=default,
+                           help=text + shown, **opts)
     p.add_argument("--overwrite", action="store_true",
                    help="replace an earlier fit in the output folder (only the files it wrote)")
-    p.add_argument("--stage1", type=int, default=150, help="stage-1 (geometry) iterations (default 150)")
-    p.add_argument("--stage2", type=int, default=200, help="stage-2 (materials) iterations (default 200)")
-    p.add_argument("--width", type=int, default=320, help="image width the fit works at (default 320)")
-    p.add_argument("--lidar-columns", type=int, default=512,
-                   help="LiDAR azimuth columns used per scan (default 512)")
-    p.add_argument("--batch", type=int, default=4096, help="stage-1 rays per batch (camera and LiDAR each)")
-    p.add_argument("--samples", type=int, default=16, help="sky samples M per Gaussian while fitting (default 16)")
-    p.add_argument("--render-samples", default="auto",
-                   help="sky samples M written into the fitted scene.xml: 'auto' (the smallest of "
-                        "4/8/16/32 within 0.1 dB of the best held-out PSNR) or a number")
-    p.add_argument("--weights", default="",
-                   help="loss weights, e.g. 'rgb2lidar=0,lidar2rgb=0' (paper defaults: lidar=rgb=1, "
-                        "nor=mat=0.1, rgb2lidar=lidar2rgb=0.05; 0 switches a term off)")
-    p.add_argument("--sigma", type=float, default=0.1, help="bilateral sigma of L_rgb->lidar")
-    p.add_argument("--sun", choices=("auto", "on", "off"), default="auto",
-                   help="use a sun: decided from the data (auto) or forced")
-    p.add_argument("--sh-order", choices=("auto", "0", "1", "2", "3"), default="auto",
-                   help="SH order of the sky: decided from the visible sky (auto) or forced")
-    p.add_argument("--lidar-model", choices=("auto", "pbr", "lambertian"), default="auto",
-                   help="LiDAR reflectance: keep the specular lobe only if it lowers held-out error (auto)")
-    p.add_argument("--no-response", action="store_true",
-                   help="keep the paper's cos/d^2 LiDAR response instead of estimating it")
-    p.add_argument("--per-frame-visibility", action="store_true",
-                   help="trace sky/sun visibility per frame so moving objects' shadows move "
-                        "(G x M shadow rays per frame; default: once, objects at their first pose)")
-    p.add_argument("--sun-visibility", choices=("learn", "trace"), default="learn",
-                   help="per-Gaussian sun visibility: traced at stage 2's start and then learned "
-                        "(the paper's v_sun; shadows of occluders the fit lacks), or traced only")
-    p.add_argument("--learn-sun-direction", action="store_true",
-                   help="also refine the selected sun direction in stage 2 (with learned sun "
-                        "visibility; it moves only the n.l shading, so albedo can absorb it)")
-    p.add_argument("--keep-sky-lookalikes", action="store_true",
-                   help="keep stage-1 Gaussians that have the sky's colour and only sky behind "
-                        "them (default: removed before stage 2; they cast shadows no roof casts)")
-    p.add_argument("--max-gaussians", type=int, default=800000, help="densification cap")
-    p.add_argument("--checkpoint-every", type=int, default=50)
-    p.add_argument("--eval-every", type=int, default=50)
-    p.add_argument("--resume", action="store_true",
-                   help="continue the fit in the output folder from its checkpoints/latest.npz")
-    p.add_argument("--seed", type=int, default=0)
     p.set_defaults(run=run)
 
 
 def config_from_args(args):
     from ..fit.losses import LossWeights
     from ..fit.runner import FitConfig
+    values = {name: getattr(args, name) for _, name, _, _ in FLAGS}
     try:
-        weights = LossWeights.parse(args.weights)
+        values["weights"] = LossWeights.parse(values["weights"])
     except ValueError as exc:
         raise UserError("--weights: %s" % exc) from None
-    for name, value in weights.as_dict().items():
+    for name, value in values["weights"].as_dict().items():
         if not value <= MAX_WEIGHT:
             raise UserError("--weights: %s=%g is too large (at most %g: the float32 loss "
                             "would overflow)" % (name, value, MAX_WEIGHT))
-    if args.resume and args.overwrite:
+    if args.resume and getattr(args, "overwrite", False):
         raise UserError("--resume and --overwrite exclude each other")
-    for name in ("stage1", "stage2", "width", "lidar_columns", "batch", "samples"):
-        if getattr(args, name) < (0 if name.startswith("stage") else 1):
-            raise UserError("--%s must be positive" % name.replace("_", "-"))
-    render_samples = str(args.render_samples).strip().lower()
+    for flag, name, _, _ in FLAGS:
+        if name in ("stage1_iterations", "stage2_iterations", "fit_width", "lidar_columns",
+                    "batch_rays", "samples"):
+            if values[name] < (0 if name.startswith("stage") else 1):
+                raise UserError("%s must be positive" % flag)
+    render_samples = str(values["render_samples"]).strip().lower()
     if render_samples != "auto" and not (render_samples.isdigit() and int(render_samples) >= 1):
         raise UserError("--render-samples must be 'auto' or a positive number (got %r)"
-                        % args.render_samples)
-    return FitConfig(output=args.output, stage1_iterations=args.stage1, stage2_iterations=args.stage2,
-                     fit_width=args.width, lidar_columns=args.lidar_columns, batch_rays=args.batch,
-                     samples=args.samples, render_samples=render_samples, weights=weights,
-                     bilateral_sigma=args.sigma, sun=args.sun,
-                     sh_order=args.sh_order, lidar_model=args.lidar_model,
-                     fit_response=not args.no_response, max_gaussians=args.max_gaussians,
-                     checkpoint_every=args.checkpoint_every, eval_every=args.eval_every,
-                     resume=args.resume, seed=args.seed,
-                     per_frame_visibility=args.per_frame_visibility,
-                     sun_visibility=args.sun_visibility,
-                     prune_sky_lookalikes=not args.keep_sky_lookalikes,
-                     learn_sun_direction=args.learn_sun_direction)
+                        % values["render_samples"])
+    values["render_samples"] = render_samples
+    return FitConfig(**values)
 
 
 def output_folder(args) -> str:

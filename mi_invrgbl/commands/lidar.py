@@ -16,7 +16,7 @@ import time
 import numpy as np
 
 from .. import outdir
-from ..apps import lidar_sim, sequence, video
+from ..apps import lidar_resimulation, sequence, video
 from ..apps.frames import FrameSet, parse_selection
 from ..apps.posing import check_inside, parse_pose, read_trajectory, scene_bounds
 from ..scene.xml import SceneDoc
@@ -103,13 +103,13 @@ def _simulate(args, doc, out_dir, poses, own_frames, log=print):
     import mitsuba as mi
     from ..io.images import write_exr, write_false_colour_png
     from ..io.velodyne import write_velodyne
-    spec = lidar_sim.sensor_spec(args.sensor, args.azimuth_steps,
-                                 lidar_sim.recorded_sensor(args.scene), out_dir, args.near, args.far)
+    spec = lidar_resimulation.sensor_spec(args.sensor, args.azimuth_steps,
+                                 lidar_resimulation.recorded_sensor(args.scene), out_dir, args.near, args.far)
     scale = (args.intensity_scale if args.intensity_scale is not None
-             else lidar_sim.default_intensity_scale(args.scene))
+             else lidar_resimulation.default_intensity_scale(args.scene))
     print("[lidar] sensor %s: %d beams x %d azimuth steps; %d pose(s); intensity scale %g"
           % (spec.name, spec.height, spec.width, len(poses), scale))
-    edited, ident = lidar_sim.lidar_doc(doc, spec, poses[0][1], args.lidar_model)
+    edited, ident = lidar_resimulation.lidar_doc(doc, spec, poses[0][1], args.lidar_model)
     scene, _ = sequence.write_and_load(edited, doc, out_dir, "lidar", log=log,
                                        defines=sequence.defines(args))
     sensor = next(s for s in scene.sensors() if s.id() == ident)
@@ -130,13 +130,13 @@ def _simulate(args, doc, out_dir, poses, own_frames, log=print):
         params["to_world"] = mi.Transform4f(mi.ScalarMatrix4f(pose))
         params.update()
         image = np.array(mi.render(scene, sensor=sensor), np.float32)
-        sweep = lidar_sim.sweep_outputs(image, directions, scale, args.drop_rate, rng)
+        sweep = lidar_resimulation.sweep_outputs(image, directions, scale, args.drop_rate, rng)
         stem = os.path.join(out_dir, "frame_%04d" % k)
         write_velodyne(stem + ".bin", sweep["points"], sweep["intensity"])
-        write_exr(stem + ".exr", sweep["image"], list(lidar_sim.CHANNELS))
+        write_exr(stem + ".exr", sweep["image"], list(lidar_resimulation.CHANNELS))
         write_false_colour_png(stem + ".png", sweep["image"][..., 0], sweep["hit"])
         write_false_colour_png(stem + "_range.png", sweep["image"][..., 1], sweep["hit"])
-        previews.append(lidar_sim.preview(sweep["image"]))
+        previews.append(lidar_resimulation.preview(sweep["image"]))
         print("[lidar] frame_%04d %.1f s, %d points (%.0f %% of beams return) -> %s.bin, %s.exr, %s.png"
               % (k, time.time() - t, len(sweep["points"]), 100 * sweep["hit"].mean(),
                  *(os.path.basename(stem),) * 3))

@@ -10,12 +10,11 @@ sets a ``shsun`` emitter to another light and back.
 
 from __future__ import annotations
 
-import xml.etree.ElementTree as ET
-
 import drjit as dr
 import numpy as np
 
-from ..errors import UserError, mitsuba_message
+from ..errors import UserError
+from ..scene.xml import SceneDoc, load_parts, set_child_param
 
 
 def load_lidar_integrator(scene_lidar, model=None):
@@ -24,28 +23,16 @@ def load_lidar_integrator(scene_lidar, model=None):
     import mitsuba as mi
     if scene_lidar is None:
         return mi.load_dict({"type": "lidar_return", "model": model or "pbr"})
-    try:
-        root = ET.parse(scene_lidar).getroot()
-    except (ET.ParseError, OSError) as exc:
-        raise UserError("%s: cannot read: %s" % (scene_lidar, exc)) from None
-    integ = [e for e in root if e.tag == "integrator"]
-    if not integ:
+    doc = SceneDoc.load(str(scene_lidar))
+    integ = doc.integrator()
+    if integ is None:
         raise UserError("%s: no <integrator> element" % scene_lidar)
-    if integ[0].get("type") != "lidar_return":
+    if integ.get("type") != "lidar_return":
         raise UserError("%s: the integrator is '%s', expected lidar_return"
-                        % (scene_lidar, integ[0].get("type")))
+                        % (scene_lidar, integ.get("type")))
     if model is not None:
-        for e in integ[0]:
-            if e.get("name") == "model":
-                e.set("value", model)
-    parts = [ET.tostring(e, encoding="unicode") for e in root if e.tag == "default"]
-    parts.append(ET.tostring(integ[0], encoding="unicode"))
-    text = '<scene version="%s">%s</scene>' % (root.get("version", "3.0.0"), "".join(parts))
-    try:
-        return mi.load_string(text).integrator()
-    except Exception as exc:
-        raise UserError("%s: cannot load the lidar_return integrator: %s"
-                        % (scene_lidar, mitsuba_message(exc))) from None
+        set_child_param(integ, "string", "model", model)
+    return load_parts(doc, ("integrator",), "the lidar_return integrator").integrator()
 
 
 def _channel_index(names, prefix):

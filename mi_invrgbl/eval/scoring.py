@@ -146,6 +146,92 @@ def json_clean(value):
     return value
 
 
+def nearest_neighbour_baseline(frames, positions, max_points, log=print):
+    """The nearest-neighbour intensity baseline from the training frames'
+    points (not the held-out ones nor the scored ones); None without points."""
+    from .baselines import NearestNeighbourIntensity, load_points
+    held = {k for k in range(len(frames)) if frames[k].held_out} | set(positions)
+    paths = [frames[k].points for k in range(len(frames))
+             if k not in held and frames[k].points is not None
+             and os.path.isfile(frames[k].points)]
+    if not paths:
+        log("[eval] no training points: nearest-neighbour baseline skipped")
+        return None
+    t = time.time()
+    pts = load_points(paths, max_points)
+    if not len(pts):
+        return None
+    nn = NearestNeighbourIntensity(pts)
+    log("[eval] nearest-neighbour baseline: %d points from %d training frame(s), %.1f s"
+        % (len(nn), len(paths), time.time() - t))
+    return nn
+
+
+def score_frame(scene, frames, k, spp, cam_integ, lidar_integ, nn=None, gt_dir=None,
+                R=np.eye(3), save_renders=None, log=print) -> dict:
+    """One frame's row: camera, LiDAR and ground-truth metrics."""
+    rec = frames[k]
+    t = time.time()
+    cam_sensor, lidar_sensor = set_frame(scene, frames, k)
+    row = {"index": rec.index}
+    if cam_sensor is None:
+        raise UserError("%s: no camera sensor '%s' for frame %d"
+                        % (frames.path, rec.camera, rec.index))
+    cam = render_camera(scene, cam_sensor, spp, cam_integ)
+    if rec.image is not None:
+        row.update(image_metrics(cam["rgb"], read_png(rec.image)))
+    if lidar_sensor is not None and rec.lidar_scan is not None:
+        obs = read_channels(rec.lidar_scan, ["intensity", "range", "hit"], "LiDAR scan")
+        pred = render_lidar(scene, lidar_sensor, lidar_integ)
+        row.update(lidar_metrics(pred, obs, nn, lidar_sensor))
+    elif rec.lidar_scan is not None:
+        log("[eval] frame %d: no LiDAR sensor '%s' in the scene" % (rec.index, rec.lidar))
+    if gt_dir is not None:
+        row.update(ground_truth_metrics(cam, gt_dir, source_number(rec), R))
+    if save_renders:
+        from ..io.images import write_exr
+        os.makedirs(save_renders, exist_ok=True)
+        write_exr(os.path.join(save_renders, "camera_%04d.exr" % rec.index),
+                  cam["rgb"], ["R", "G", "B"])
+    row["time_s"] = time.time() - t
+    log("[eval] frame %d scored in %.1f s" % (rec.index, row["time_s"]))
+    return row
+
+
+def relight_pass(scene, frames, positions, rows, sky, light, gt_dir, R, spp, integrator,
+                 log=print) -> None:
+    """Relighting scores under the ground truth's time-B ``light``, into ``rows``.
+
+    A second pass with the light set once: the integrator's lighting
+    precompute (minutes at 1e5-1e6 Gaussians) is redone whenever the sun or
+    the geometry changes, so interleaving the two lights would pay it twice
+    per frame even in a static scene.
+    """
+    todo = [(k, row, Path(gt_dir) / "time_b" / ("%06d.exr" % source_number(frames[k])))
+            for k, row in zip(positions, rows)]
+    todo = [item for item in todo if item[2].is_file()]
+    if not todo:
+        return
+    swap = SkySwap(sky)
+    try:
+        swap.set(light.get("sky_radiance", [0, 0, 0]),
+                 R @ np.asarray(light.get("sun_direction", [0, 0, 1]), np.float64),
+                 light.get("sun_irradiance", [0, 0, 0]))
+        for k, row, gt_b in todo:
+            t = time.time()
+            cam_sensor, _ = set_frame(scene, frames, k)
+            relit = render_camera(scene, cam_sensor, spp, integrator)
+            truth = read_channels(gt_b, ["r", "g", "b"], "relighting ground truth")
+            truth = np.stack([truth["r"], truth["g"], truth["b"]], -1)
+            m = image_metrics(relit["rgb"], np.clip(M.linear_to_srgb(truth), 0.0, 1.0))
+            row["relight_psnr"], row["relight_ssim"] = m["psnr"], m["ssim"]
+            row["relight_time_s"] = time.time() - t
+            log("[eval] frame %d relit (time B) in %.1f s" % (frames[k].index,
+                                                             row["relight_time_s"]))
+    finally:
+        swap.restore()
+
+
 def evaluate(scene_path, frames_spec="held-out", spp=0, samples=None, lidar_model=None,
              baseline=True, relight=True, baseline_max_points=2_000_000, save_renders=None,
              log=print):
@@ -160,23 +246,8 @@ def evaluate(scene_path, frames_spec="held-out", spp=0, samples=None, lidar_mode
     log("[eval] %s: %d frame(s) to score, loaded in %.1f s%s"
         % (scene_xml, len(positions), time.time() - t0,
            "" if scene_lidar is None else "; LiDAR response from %s" % scene_lidar.name))
-
-    nn = None
-    if baseline:
-        from .baselines import NearestNeighbourIntensity, load_points
-        held = {k for k in range(len(frames)) if frames[k].held_out} | set(positions)
-        paths = [frames[k].points for k in range(len(frames))
-                 if k not in held and frames[k].points is not None
-                 and os.path.isfile(frames[k].points)]
-        if paths:
-            t = time.time()
-            pts = load_points(paths, baseline_max_points)
-            if len(pts):
-                nn = NearestNeighbourIntensity(pts)
-                log("[eval] nearest-neighbour baseline: %d points from %d training frame(s), "
-                    "%.1f s" % (len(nn), len(paths), time.time() - t))
-        else:
-            log("[eval] no training points: nearest-neighbour baseline skipped")
+    nn = nearest_neighbour_baseline(frames, positions, baseline_max_points, log) \
+        if baseline else None
 
     gt_dir = frames.ground_truth if frames.ground_truth is not None \
         and Path(frames.ground_truth).is_dir() else None
@@ -187,81 +258,27 @@ def evaluate(scene_path, frames_spec="held-out", spp=0, samples=None, lidar_mode
     sky = find_sky(scene) if lights and "time_b" in lights else None
     if lights and "time_b" in lights and sky is None:
         log("[eval] the scene has no shsun emitter: relighting score skipped")
-    # A moved sun needs traced sun visibility, not the fitted per-Gaussian field.
-    relight_integ = integrator_like(scene, samples, "trace") if sky is not None else None
 
-    rows = []
-    for k in positions:
-        rec = frames[k]
-        t = time.time()
-        cam_sensor, lidar_sensor = set_frame(scene, frames, k)
-        row = {"index": rec.index}
-        if cam_sensor is None:
-            raise UserError("%s: no camera sensor '%s' for frame %d" % (scene_xml, rec.camera, rec.index))
-        cam = render_camera(scene, cam_sensor, spp, cam_integ)
-        if rec.image is not None:
-            row.update(image_metrics(cam["rgb"], read_png(rec.image)))
-        if lidar_sensor is not None and rec.lidar_scan is not None:
-            obs = read_channels(rec.lidar_scan, ["intensity", "range", "hit"], "LiDAR scan")
-            pred = render_lidar(scene, lidar_sensor, lidar_integ)
-            row.update(lidar_metrics(pred, obs, nn, lidar_sensor))
-        elif rec.lidar_scan is not None:
-            log("[eval] frame %d: no LiDAR sensor '%s' in the scene" % (rec.index, rec.lidar))
-        if gt_dir is not None:
-            row.update(ground_truth_metrics(cam, gt_dir, source_number(rec), R))
-        if save_renders:
-            from ..io.images import write_exr
-            os.makedirs(save_renders, exist_ok=True)
-            write_exr(os.path.join(save_renders, "camera_%04d.exr" % rec.index),
-                      cam["rgb"], ["R", "G", "B"])
-        row["time_s"] = time.time() - t
-        rows.append(row)
-        log("[eval] frame %d scored in %.1f s" % (rec.index, row["time_s"]))
-
-    # Relighting in a second pass with the time-B light set once: the
-    # integrator's lighting precompute (minutes at 1e5-1e6 Gaussians) is
-    # redone whenever the sun or the geometry changes, so interleaving the two
-    # lights would pay it twice per frame even in a static scene.
+    rows = [score_frame(scene, frames, k, spp, cam_integ, lidar_integ, nn, gt_dir, R,
+                        save_renders, log) for k in positions]
     if sky is not None:
-        todo = [(k, row, Path(gt_dir) / "time_b" / ("%06d.exr" % source_number(frames[k])))
-                for k, row in zip(positions, rows)]
-        todo = [item for item in todo if item[2].is_file()]
-        if todo:
-            lb = lights["time_b"]
-            swap = SkySwap(sky)
-            try:
-                swap.set(lb.get("sky_radiance", [0, 0, 0]),
-                         R @ np.asarray(lb.get("sun_direction", [0, 0, 1]), np.float64),
-                         lb.get("sun_irradiance", [0, 0, 0]))
-                for k, row, gt_b in todo:
-                    t = time.time()
-                    cam_sensor, _ = set_frame(scene, frames, k)
-                    relit = render_camera(scene, cam_sensor, spp, relight_integ)
-                    truth = read_channels(gt_b, ["r", "g", "b"], "relighting ground truth")
-                    truth = np.stack([truth["r"], truth["g"], truth["b"]], -1)
-                    m = image_metrics(relit["rgb"], np.clip(M.linear_to_srgb(truth), 0.0, 1.0))
-                    row["relight_psnr"], row["relight_ssim"] = m["psnr"], m["ssim"]
-                    row["relight_time_s"] = time.time() - t
-                    log("[eval] frame %d relit (time B) in %.1f s" % (frames[k].index,
-                                                                     row["relight_time_s"]))
-            finally:
-                swap.restore()
+        # A moved sun needs traced sun visibility, not the fitted per-Gaussian field.
+        relight_pass(scene, frames, positions, rows, sky, lights["time_b"], gt_dir, R, spp,
+                     integrator_like(scene, samples, "trace"), log)
 
-    mean = _mean(rows)
     lighting = sun_metrics(sky, lights, R) if sky is not None else None
     if lighting:
         log("[eval] sun: %s" % ("not used" if not lighting["sun_used"] else
                                  "%.1f deg from the true time-A direction"
                                  % lighting["sun_direction_error_deg"]))
-    result = {"format": "mi-invrgbl-metrics/1", "scene": str(Path(scene_xml).absolute()),
-              "frames_json": str(frames.path), "selection": frames_spec,
-              "lidar_response": str(scene_lidar) if scene_lidar else "default",
-              "ground_truth": str(gt_dir) if gt_dir else None,
-              "notes": {"psnr": "sRGB in [0, 1], peak 1; identical images = %g dB" % PSNR_CAP,
-                        "albedo_rmse": "per-channel least-squares scale fit, then RMSE",
-                        "lidar_intensity_rmse": "over beams that return in the observation"},
-              "frames": rows, "mean": mean, "lighting": lighting}
-    return result
+    return {"format": "mi-invrgbl-metrics/1", "scene": str(Path(scene_xml).absolute()),
+            "frames_json": str(frames.path), "selection": frames_spec,
+            "lidar_response": str(scene_lidar) if scene_lidar else "default",
+            "ground_truth": str(gt_dir) if gt_dir else None,
+            "notes": {"psnr": "sRGB in [0, 1], peak 1; identical images = %g dB" % PSNR_CAP,
+                      "albedo_rmse": "per-channel least-squares scale fit, then RMSE",
+                      "lidar_intensity_rmse": "over beams that return in the observation"},
+            "frames": rows, "mean": _mean(rows), "lighting": lighting}
 
 
 def write_metrics(result, out) -> str:

@@ -23,6 +23,7 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
+from ..physics import hits as hitlib
 from ..physics.fields import BY_NAME, FIELDS, GEOMETRY, MATERIAL
 from ..physics.gaussian_ply import GaussianCloud
 from ..plugins.gaussians import cloud_from_shape, apply_transform
@@ -81,6 +82,8 @@ class GaussianModel:
         self.params = mi.traverse(scene)
         self.nodes: dict[str, Node] = {}
         self.object_names = set(object_names)
+        #: Node name -> the Dr.Jit registry id its hits carry in hit lists.
+        self.shape_ids: dict[str, int] = {}
         for shape in scene.shapes():
             if shape.is_ellipsoids():
                 self._add_node(shape)
@@ -93,6 +96,7 @@ class GaussianModel:
         cloud = cloud_from_shape(shape)
         dynamic = name in self.object_names
         self.nodes[name] = Node(name, len(cloud), dynamic)
+        self.shape_ids[name] = hitlib.shape_id(shape)
         self.set_cloud(name, cloud, local=not dynamic)
 
     def set_cloud(self, name, cloud: GaussianCloud, local=True, pose=None):
@@ -104,17 +108,6 @@ class GaussianModel:
         node.count = len(cloud)
         node.values = {f.variable: mi.Float(f.to_storage(getattr(cloud, f.cloud)).astype(np.float32).ravel())
                        for f in FIELDS}
-
-    def keys(self, names):
-        return ["%s.%s" % (n, k) for n in self.nodes for k in names]
-
-    def get(self, key):
-        name, k = key.split(".", 1)
-        return self.nodes[name].values[k]
-
-    def set(self, key, value):
-        name, k = key.split(".", 1)
-        self.nodes[name].values[k] = value
 
     @property
     def total(self):

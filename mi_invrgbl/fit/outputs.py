@@ -28,7 +28,8 @@ def fitted_xml(ctx, lidar=False):
     """The fitted scene's XML text (camera or LiDAR integrator)."""
     doc = SceneDoc.load(ctx.scene_path, resolve_paths=False)
     sky = np.array(dr.detach(ctx.params[ctx.sky_key]), np.float64).reshape(-1, 3)
-    order = getattr(ctx, "sh_order", ctx.sky_emitter.order)
+    order = ctx.sh_order if ctx.sh_order is not None else ctx.sky_emitter.order
+    sky = sky[: (order + 1) ** 2]
     for em in doc.root.iter("emitter"):
         if em.get("type") == "shsun":
             d = np.array(dr.detach(ctx.params[ctx.sun_dir_key]), np.float64).ravel()
@@ -46,7 +47,7 @@ def fitted_xml(ctx, lidar=False):
     else:
         samples = ctx.selection.get("samples", {}).get("samples", ctx.config.samples)
         integ = xml.integrator("invrgbl", samples=int(samples))
-        if getattr(ctx, "sun_visibility_learned", False):
+        if ctx.sun_visibility_learned:
             # The fitted v_sun holds for the fitted sun; relight/night switch to trace.
             xml.set_child_param(integ, "string", "sun_visibility", "attribute")
     doc.set_integrator(integ)
@@ -100,6 +101,10 @@ def write_outputs(ctx, stage2, interrupted=False):
         plys[name] = path
     _write_text(os.path.join(fit_dir, "scene.xml"), fitted_xml(ctx))
     _write_text(os.path.join(fit_dir, "scene_lidar.xml"), fitted_xml(ctx, lidar=True))
+    if stage2 is not None and any(f.lidar is not None for f in ctx.train_frames):
+        from .response import fit_scene_ray_drop
+        ctx.selection["ray_drop"] = fit_scene_ray_drop(
+            os.path.join(fit_dir, "scene.xml"), os.path.join(fit_dir, "scene_lidar.xml"), log=ctx.log)
     maps = 0
     if stage2 is not None:
         maps = write_maps(ctx, stage2, os.path.join(fit_dir, "maps"))
@@ -110,6 +115,7 @@ def write_outputs(ctx, stage2, interrupted=False):
         "interrupted": interrupted,
         "gaussians": {n: node.count for n, node in ctx.model.nodes.items()},
         "frames": {"train": [f.index for f in ctx.train_frames],
+                   "validation": [f.index for f in ctx.validation_frames],
                    "held_out": [f.index for f in ctx.held_out_frames]},
         "heldout_psnr": float(final["heldout_psnr"]) if final.get("heldout_psnr") not in (None, "") else None,
         "heldout_intensity_rmse": float(final["heldout_intensity_rmse"])
@@ -119,7 +125,7 @@ def write_outputs(ctx, stage2, interrupted=False):
                      "angle_exponent": float(ctx.response.angle_exponent[0]),
                      "beam_gains": np.array(ctx.response.beam_gains).tolist()},
         "times_s": ctx.times,
-        "wall_s": time.perf_counter() - ctx.t_start + getattr(ctx, "wall_offset", 0.0),
+        "wall_s": time.perf_counter() - ctx.t_start + ctx.wall_offset,
         "peak_rss_mb": peak_rss_mb(),
         "rollbacks": ctx.lr_state.get("rollbacks", 0),
         "config": ctx.config.to_json(),

@@ -21,11 +21,11 @@ import drjit as dr
 import mitsuba as mi
 
 from . import losses
-from ..physics.fields import BY_VARIABLE
+from ..physics.fields import BY_NAME, GEOMETRY
 from ..physics.gaussian_ply import GaussianCloud
-from .model import GEOMETRY_KEYS
 from .render import camera_unlit, lidar_beams
-from .steps import make_optimizer, safe_step
+from .steps import safe_step
+from .variables import GaussianVariable, Optimizer, SkySH
 
 #: Learning rate of the sky's SH coefficients (the Gaussians' are in the field table).
 SKY_LR = 1e-2
@@ -48,22 +48,19 @@ class Stage1:
         self.batch_camera = cfg.batch_rays
         self.batch_lidar = cfg.batch_rays
 
+    def variables(self):
+        """Geometry and the view-independent colour of every node, and the sky."""
+        scale = self.ctx.config.lr_scale
+        out = [GaussianVariable(self.model, name, f, f.lr * scale)
+               for name in self.model.nodes for f in GEOMETRY + (BY_NAME["colour"],)]
+        out.append(SkySH(self.ctx, SKY_LR * scale))
+        return out
+
     def build_optimizer(self):
-        values, lrs = {}, {}
-        for key in self.model.keys(GEOMETRY_KEYS + ("colour",)):
-            values[key] = self.model.get(key)
-            lrs[key] = BY_VARIABLE[key.split(".", 1)[1]].lr * self.ctx.config.lr_scale
-        if self.ctx.sky_key is not None:
-            values["sky.sh"] = self.ctx.params[self.ctx.sky_key]
-            lrs["sky.sh"] = SKY_LR * self.ctx.config.lr_scale
-        self.opt = make_optimizer(values, lrs)
+        self.opt = Optimizer(self.variables())
 
     def pull(self):
-        for key in self.opt.keys():
-            if key == "sky.sh":
-                self.ctx.params[self.ctx.sky_key] = self.opt[key]
-            else:
-                self.model.set(key, self.opt[key])
+        self.opt.pull()
 
     def loss_terms(self, frame):
         cfg = self.ctx.config
@@ -100,26 +97,28 @@ class Stage1:
         total = mi.Float(0.0)
         for v in terms.values():
             total = total + v
-        ok = safe_step(self.opt, total, ctx.log, ctx.lr_state, "stage-1 iteration %d" % it,
+        ok = safe_step(self.opt.adam, total, ctx.log, ctx.lr_state, "stage-1 iteration %d" % it,
                        before_step=self._accumulate_gradients)
         if ok:
-            self._clamp()
+            self.opt.clamp()
         return float(total[0]), {k: float(v[0]) for k, v in terms.items()}, ok
 
-    def _clamp(self):
-        for key in list(self.opt.keys()):
-            k = key.split(".", 1)[1] if "." in key else key
-            bounds = BY_VARIABLE[k].storage_range() if k in BY_VARIABLE else None
-            if bounds is not None:
-                self.opt[key] = dr.clip(self.opt[key], *bounds)
+    def after_step(self, it, total):
+        """Densify every ``densify_every`` iterations in the first
+        ``densify_until`` of the stage."""
+        cfg = self.ctx.config
+        if cfg.densify_every and it % cfg.densify_every == 0 and it <= cfg.densify_until * total:
+            report = self.densify()
+            self.ctx.log("\n[fit] densify @%d: %s" % (it, ", ".join(
+                "%s -%d +%d clone +%d split = %d" % (n, *r) for n, r in report.items())))
 
     def _accumulate_gradients(self):
         # Positional gradient magnitude per Gaussian, for densification.
         for name, node in self.model.nodes.items():
-            key = name + ".center"
-            if key not in self.opt:
+            key = "%s.%s" % (name, BY_NAME["center"].variable)
+            if key not in self.opt.variables:
                 continue
-            g = np.array(dr.grad(self.opt[key]), np.float32).reshape(-1, 3)
+            g = np.array(dr.grad(self.opt.adam[key]), np.float32).reshape(-1, 3)
             if g.shape[0] != node.count:
                 continue
             acc = self.grad_accum.setdefault(name, [np.zeros(node.count, np.float32),
@@ -134,7 +133,7 @@ class Stage1:
         from .sky_lookalikes import find_sky_lookalikes
         self.pull()
         masks = find_sky_lookalikes(self.ctx, self.ctx.train_frames)
-        removed = {}
+        removed, parents = {}, {}
         for name, drop in masks.items():
             node = self.model.nodes[name]
             if not drop.any() or drop.size != node.count:
@@ -143,8 +142,9 @@ class Stage1:
             cloud.albedo = np.clip(node.numpy("colour"), 0, 1)
             self._replace_cloud(name, cloud.subset(~drop))
             removed[name] = int(drop.sum())
+            parents[name] = np.nonzero(~drop)[0]
         if removed:
-            self._rebuild_optimizer()
+            self.opt = self.opt.rebuild(self.variables(), parents)
         return removed
 
     def _replace_cloud(self, name, cloud):
@@ -155,19 +155,12 @@ class Stage1:
         self.model.set_cloud(name, cloud, local=True)
         self.model.nodes[name].values["colour"] = mi.Float(cloud.albedo.astype(np.float32).ravel())
 
-    def _rebuild_optimizer(self):
-        """New Adam state for the changed Gaussian counts; the sky's is kept."""
-        sky = self.opt["sky.sh"] if "sky.sh" in self.opt else None
-        self.build_optimizer()
-        if sky is not None:
-            self.opt["sky.sh"] = sky
-
     # ------------------------------------------------------------ densify
     def densify(self):
         """Prune transparent Gaussians, split/clone those with large gradients."""
         cfg = self.ctx.config
         self.pull()
-        report = {}
+        report, parents = {}, {}
         total_now = self.model.total
         for name, node in self.model.nodes.items():
             cloud = self.model.cloud(name, stage=1)
@@ -191,10 +184,15 @@ class Stage1:
             big = cloud.scales.max(axis=1) > cfg.split_scale
             split = grow & big
             clone = grow & ~big
+            # Rows of the new arrays: kept Gaussians and clones continue a row
+            # of the old ones (and its Adam moments); split halves are new.
+            rows = [np.nonzero(keep & ~split)[0]]
             parts = [cloud.subset(keep & ~split)]
             if clone.any():
                 parts.append(cloud.subset(clone))
+                rows.append(np.nonzero(clone)[0])
             if split.any():
+                rows.append(np.full(2 * int(split.sum()), -1))
                 for sign in (-1.0, 1.0):
                     s = cloud.subset(split)
                     rot = _rotation(s.quaternions)
@@ -205,9 +203,10 @@ class Stage1:
             self._replace_cloud(name, GaussianCloud.concat(parts, cloud.source))
             node = self.model.nodes[name]
             report[name] = (int((~keep).sum()), int(clone.sum()), int(split.sum()), node.count)
+            parents[name] = np.concatenate(rows)
             total_now = total_now - len(cloud) + node.count
         self.grad_accum = {}
-        self._rebuild_optimizer()
+        self.opt = self.opt.rebuild(self.variables(), parents)
         return report
 
 

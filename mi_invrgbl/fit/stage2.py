@@ -41,11 +41,12 @@ from ..physics import hits as hitlib
 from ..physics.lighting import (GaussianLighting, GaussianTable, LightingCache, light_at,
                                 point_lights, transmittance)
 from . import losses, shading_init
-from ..physics.fields import BY_VARIABLE
-from .model import MATERIAL_KEYS
-from .render import (FrozenHits, Response, VirtualNode, camera_shaded, freeze,
+from ..physics.fields import BY_NAME, MATERIAL
+from .render import (Response, VirtualNode, camera_shaded, freeze,
                      lidar_shaded)
-from .steps import make_optimizer, safe_step
+from .steps import safe_step
+from .variables import (GaussianVariable, Optimizer, ResponseVariable, SkySH, SunDirection,
+                        SunIrradiance)
 from .superpixels import slic_labels
 
 #: Metres above a Gaussian's centre its traced sun visibility starts from.
@@ -60,7 +61,9 @@ STAGE2_LR = {"sky": 1e-2, "sun": 2e-2, "sun_direction": 2e-3,
 class FrozenScene:
     """Cached traversals and visibility of every frame (geometry frozen)."""
 
-    def __init__(self, ctx, frames):
+    def __init__(self, ctx, frames, min_weight=1e-4):
+        """``min_weight``: hits blended with less weight are not cached (see
+        :func:`.render.freeze`)."""
         self.ctx = ctx
         cfg = ctx.config
         model = ctx.model
@@ -90,10 +93,10 @@ class FrozenScene:
                 self.caches[frame.index] = LightingCache() if dynamic else shared
                 if frame.camera is not None:
                     self.camera[frame.index] = freeze(ctx.scene, frame.camera.rays, cfg.max_hits,
-                                                      cfg.min_transmittance)
+                                                      cfg.min_transmittance, min_weight)
                 if frame.lidar is not None:
                     self.lidar[frame.index] = freeze(ctx.scene, frame.lidar.rays, cfg.max_hits,
-                                                     cfg.min_transmittance)
+                                                     cfg.min_transmittance, min_weight)
 
     def nbytes(self):
         return sum(f.nbytes() for f in list(self.camera.values()) + list(self.lidar.values()))
@@ -107,13 +110,11 @@ class FrozenScene:
         for name, node in model.nodes.items():
             data, opac = self.geometry[frame.index][name]
             pose = frame.poses.get(name)
-            normal = values[name + ".normal"]
+            key = lambda f: "%s.%s" % (name, f.variable)  # noqa: E731
+            normal = values[key(BY_NAME["normal"])]
             if pose is not None and node.dynamic:
                 normal = model.world_normal(node, pose, normal)
-            attributes = {"normal": normal, "albedo": values[name + ".albedo"],
-                          "roughness": values[name + ".roughness"],
-                          "lidar_albedo": values[name + ".lidar_albedo"],
-                          "sun_visibility": values[name + ".sun_visibility"]}
+            attributes = {f.name: normal if f.name == "normal" else values[key(f)] for f in MATERIAL}
             out.append(VirtualNode(model.shape_ids[name], data, opac, attributes, node.count))
         return out
 
@@ -131,54 +132,42 @@ class Stage2:
                                          and ctx.sun_key is not None and cfg.weights.rgb > 0)
         self.build_optimizer()
 
-    def build_optimizer(self, keys=None):
-        ctx, model = self.ctx, self.ctx.model
-        values, lrs = {}, {}
-        for key in model.keys(MATERIAL_KEYS):
-            if key.endswith(".sun_visibility") and not self.learn_sun_visibility:
-                continue
-            values[key] = model.get(key)
-            lrs[key] = BY_VARIABLE[key.split(".", 1)[1]].lr
-        if ctx.sky_key is not None and ctx.config.weights.rgb > 0:
-            values["sky.sh"] = ctx.params[ctx.sky_key]
-            lrs["sky.sh"] = STAGE2_LR["sky"]
-            if ctx.sun_key is not None and ctx.use_sun:
-                values["sky.sun_irradiance"] = ctx.params[ctx.sun_key]
-                lrs["sky.sun_irradiance"] = STAGE2_LR["sun"]
-            if self.learn_sun_visibility and ctx.config.learn_sun_direction:
+    def variables(self):
+        """The stage's variables: materials of every node, sky and sun, LiDAR response."""
+        ctx, cfg = self.ctx, self.ctx.config
+        out = [GaussianVariable(ctx.model, name, f, f.lr) for name in ctx.model.nodes for f in MATERIAL
+               if f.name != "sun_visibility" or self.learn_sun_visibility]
+        if cfg.weights.rgb > 0:
+            out.append(SkySH(ctx, STAGE2_LR["sky"]))
+            if ctx.use_sun:
+                out.append(SunIrradiance(ctx, STAGE2_LR["sun"]))
+            if self.learn_sun_visibility and cfg.learn_sun_direction:
                 # With v_sun stored per Gaussian the direction moves only the
                 # shading (n.l, the specular lobe), never a cached trace.
-                values["sky.sun_direction"] = ctx.params[ctx.sun_dir_key]
-                lrs["sky.sun_direction"] = STAGE2_LR["sun_direction"]
-        if ctx.config.weights.lidar > 0:
-            r = ctx.response
-            values["response.range_exponent"] = r.range_exponent
-            values["response.angle_exponent"] = r.angle_exponent
-            values["response.beam_gains"] = r.beam_gains
-            for k in ("range_exponent", "angle_exponent", "beam_gains"):
-                lrs["response." + k] = STAGE2_LR[k] if ctx.config.fit_response else 0.0
-        if keys is not None:
-            values = {k: v for k, v in values.items() if k in keys}
-        self.opt = make_optimizer(values, {k: lrs[k] for k in values})
-        for k in list(self.opt.keys()):
-            if lrs[k] == 0.0:
-                del self.opt[k]
+                out.append(SunDirection(ctx, STAGE2_LR["sun_direction"]))
+        if cfg.weights.lidar > 0:
+            out += [ResponseVariable(ctx, k, STAGE2_LR[k] if cfg.fit_response else 0.0)
+                    for k in ("range_exponent", "angle_exponent", "beam_gains")]
+        return out
+
+    def build_optimizer(self, only=None):
+        """Adam over :meth:`variables` (those ``only(handle)`` accepts, if given)."""
+        self.opt = Optimizer([v for v in self.variables() if only is None or only(v)])
 
     def values(self):
-        """Current variables (grad-enabled where optimised)."""
+        """Current variables by key (grad-enabled where optimised); the sky and
+        sun are written into the scene."""
         ctx, model = self.ctx, self.ctx.model
-        vals = {key: model.get(key) for key in model.keys(MATERIAL_KEYS)}
-        for key in self.opt.keys():
-            vals[key] = self.opt[key]
-        if "sky.sh" in vals:
-            # Coefficients above the selected SH order stay zero (and get no gradient).
-            mask = getattr(ctx, "sh_mask", None)
-            ctx.params[ctx.sky_key] = vals["sky.sh"] * mask if mask is not None else vals["sky.sh"]
-        if "sky.sun_irradiance" in vals:
-            ctx.params[ctx.sun_key] = vals["sky.sun_irradiance"]
-        if "sky.sun_direction" in vals:
-            ctx.params[ctx.sun_dir_key] = vals["sky.sun_direction"]
-        if any(k in vals for k in ("sky.sh", "sky.sun_irradiance", "sky.sun_direction")):
+        vals = {"%s.%s" % (name, f.variable): model.nodes[name].values[f.variable]
+                for name in model.nodes for f in MATERIAL}
+        in_scene = False
+        for var, value in self.opt.items():
+            vals[var.key] = value
+            if var.in_scene:
+                # (The SH coefficients above the selected order stay zero.)
+                var.write(value)
+                in_scene = True
+        if in_scene:
             ctx.params.update()
         return vals
 
@@ -189,22 +178,9 @@ class Stage2:
                         vals.get("response.beam_gains", r.beam_gains))
 
     def commit(self):
-        """Write the optimised variables back into the model / context."""
-        ctx = self.ctx
-        for key in self.opt.keys():
-            value = dr.detach(self.opt[key])
-            if key.startswith("response."):
-                setattr(ctx.response, key.split(".", 1)[1], mi.Float(value))
-            elif key == "sky.sh":
-                mask = getattr(ctx, "sh_mask", None)
-                ctx.params[ctx.sky_key] = value * mask if mask is not None else value
-            elif key == "sky.sun_irradiance":
-                ctx.params[ctx.sun_key] = value
-            elif key == "sky.sun_direction":
-                ctx.params[ctx.sun_dir_key] = value
-            else:
-                ctx.model.set(key, mi.Float(value))
-        ctx.params.update()
+        """Write the optimised variables back into the model, scene and response."""
+        self.opt.commit()
+        self.ctx.params.update()
 
     def init_shading(self):
         """Start stage 2 from stage 1: trace the sun visibility (objects at the
@@ -289,13 +265,18 @@ class Stage2:
         return report
 
     # ---------------------------------------------------------- render
-    def render_frame(self, frame, vals, camera=True, lidar=True):
+    def render_frame(self, frame, vals, camera=True, lidar=True, samples=None, caches=None):
+        """Camera and LiDAR channels of ``frame`` from the frozen caches.
+
+        ``samples`` (default: the config's M) and ``caches`` (frame index ->
+        :class:`LightingCache`, default: the frozen scene's) let a caller
+        score another sky sample count without touching the fit's own."""
         ctx = self.ctx
         nodes = self.frozen.nodes(frame, vals)
         out = {}
         if camera and frame.index in self.frozen.camera and ctx.config.weights.rgb > 0:
-            lighting = GaussianLighting(ctx.scene, nodes, ctx.config.samples,
-                                        self.frozen.caches[frame.index],
+            cache = (caches or self.frozen.caches)[frame.index]
+            lighting = GaussianLighting(ctx.scene, nodes, samples or ctx.config.samples, cache,
                                         trace_sun=not self.learn_sun_visibility)
             out["camera"] = camera_shaded(ctx.camera_integrator, ctx.scene, lighting, nodes,
                                           frame.camera.rays, self.frozen.camera[frame.index])
@@ -359,28 +340,7 @@ class Stage2:
         out = self.render_frame(frame, vals, camera=weights.rgb > 0, lidar=weights.lidar > 0)
         terms = self.loss_terms(frame, out, weights)
         total = weights.combine(terms)
-        ok = safe_step(self.opt, total, ctx.log, ctx.lr_state, "stage-2 iteration %d" % it)
+        ok = safe_step(self.opt.adam, total, ctx.log, ctx.lr_state, "stage-2 iteration %d" % it)
         if ok:
-            self._clamp()
+            self.opt.clamp()
         return float(total[0]), {k: float(v[0]) for k, v in terms.items()}, ok
-
-    def _clamp(self):
-        for key in list(self.opt.keys()):
-            k = key.split(".", 1)[1]
-            v = self.opt[key]
-            bounds = BY_VARIABLE[k].storage_range() if k in BY_VARIABLE else None
-            if bounds is not None:
-                self.opt[key] = dr.clip(v, *bounds)
-            elif k == "sun_irradiance":
-                # Never exactly 0: shsun would then drop the sun (has_sun), the
-                # lighting cache key would change and the sun could not come back.
-                self.opt[key] = dr.maximum(v, 1e-4)
-            elif k == "sun_direction":
-                # A unit vector above the horizon (2 degrees at least).
-                d = dr.normalize(v)
-                d.z = dr.maximum(d.z, 0.035)
-                self.opt[key] = dr.normalize(d)
-            elif k == "beam_gains":
-                self.opt[key] = dr.maximum(v, 1e-4)
-            elif k in ("range_exponent", "angle_exponent"):
-                self.opt[key] = dr.clip(v, -1.0, 4.0)

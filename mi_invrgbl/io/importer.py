@@ -51,6 +51,8 @@ colours
 write
     Everything into a temporary sibling folder, a ``mi.load_file`` check of
     the scene, then one rename: a folder under the output name is complete.
+
+The steps hand on one :class:`ImportState`, each filling its own fields.
 """
 
 from __future__ import annotations
@@ -136,6 +138,48 @@ class ImportReport:
     counts: dict = field(default_factory=dict)
     odometry: dict = field(default_factory=dict)
     objects: list = field(default_factory=list)   # per track: decision summary
+
+
+@dataclass
+class BackgroundPoints:
+    """Every sweep's background points in the world frame, one row per point."""
+    points: np.ndarray             # (N, 3) float32, world frame
+    intensity: np.ndarray          # (N,) the sensor's intensity
+    range: np.ndarray              # (N,) metres from the sensor that saw the point
+    frame: np.ndarray              # (N,) position of that sweep among the imported frames
+    extended: np.ndarray | None = None   # (N,) bool: added above a wall cut by the top beam
+
+
+@dataclass
+class ImportState:
+    """What the steps hand on, filled step by step (see the module docstring)."""
+    # read
+    positions: list                # drive positions of the imported frames
+    scans: list                    # per frame: (points (N, 3), intensity (N,)), sensor frame
+    images: list                   # per frame: (H, W, 3) uint8 RGB at the output size
+    K: np.ndarray                  # 3x3 intrinsics at the output size
+    size: tuple                    # (W, H) of the output images
+    crop: tuple | None             # source crop (W, H) before downscaling, None if none
+    skipped: list                  # source frame numbers skipped (empty sweeps)
+    counts: dict = field(default_factory=dict)          # reported numbers, by name
+    odometry: dict = field(default_factory=dict)        # odometry timing and errors
+    object_report: list = field(default_factory=list)   # per track: the decision taken
+    # odometry
+    poses: np.ndarray | None = None        # (F, 4, 4) world_from_lidar
+    pose_source: str = ""                  # where the poses came from
+    cam_poses: np.ndarray | None = None    # (F, 4, 4) world_from_camera (dataset frame)
+    objects: list = field(default_factory=list)         # ObjectTrack per labelled track
+    # accumulate
+    intensity: tuple = ("raw", None)       # (kind, reference range) of the LiDAR intensity
+    lidar_table: np.ndarray | None = None  # beam elevations (radians), top first
+    beams: int = 0
+    range_images: list = field(default_factory=list)    # per frame: the observed range image
+    world_points: list = field(default_factory=list)    # per frame: (N, 4) x y z intensity
+    bg: BackgroundPoints | None = None
+    # normals
+    background: dict | None = None         # the background's Gaussian fields, by name
+    # objects
+    object_clouds: dict = field(default_factory=dict)   # object name -> its Gaussian fields
 
 
 class _Steps:
@@ -271,8 +315,7 @@ def import_scene(data, out_xml, options: ImportOptions | None = None, log=print)
             steps.run("extend walls", _extend_walls, state, opts, log)
         steps.run("normals", _background, state, opts, log)
         if opts.triangulate:
-            from .triangulate import import_step
-            steps.run("triangulate", import_step, src, state, opts, log)
+            steps.run("triangulate", _triangulate, src, state, opts, log)
         steps.run("objects", _objects, state, opts, log)
         steps.run("colours", _colours, state, opts, log)
         frames = steps.run("write", _write, src, state, opts, out.path, out_xml.name, data)
@@ -283,8 +326,8 @@ def import_scene(data, out_xml, options: ImportOptions | None = None, log=print)
         out.discard()
         raise
     steps.times["total"] = time.perf_counter() - t_total
-    report = ImportReport(out_dir, out_xml, steps.times, state["counts"], state["odometry"],
-                          state["object_report"])
+    report = ImportReport(out_dir, out_xml, steps.times, state.counts, state.odometry,
+                          state.object_report)
     report.counts["frames"] = len(frames)
     return report
 
@@ -323,34 +366,33 @@ def _read(data, opts, log):
     log("[import] %s (%s layout): %d frames%s, image %dx%d -> %dx%d"
         % (drive.root, src.kind, len(kept),
            " (%d skipped)" % len(skipped) if skipped else "", W0, H0, W, H))
-    state = {"positions": kept, "scans": scans, "images": images, "K": K, "size": (W, H),
-             "crop": crop if tuple(crop) != (W0, H0) else None,
-             "skipped": skipped, "counts": {"skipped_frames": len(skipped)},
-             "odometry": {}, "object_report": []}
+    state = ImportState(positions=kept, scans=scans, images=images, K=K, size=(W, H),
+                        crop=crop if tuple(crop) != (W0, H0) else None, skipped=skipped,
+                        counts={"skipped_frames": len(skipped)})
     return src, state
 
 
 # -- odometry --------------------------------------------------------------------
 
-def _odometry(src, state, opts, log):
+def _odometry(src, state: ImportState, opts, log):
     from . import odometry
 
     drive = src.drive
-    kept = state["positions"]
+    kept = state.positions
     if drive.poses is not None:
         P = drive.poses[kept]
         poses = np.linalg.inv(P[0]) @ P
         source = drive.pose_source
         if opts.check_odometry:
             t = time.perf_counter()
-            full = odometry.lidar_odometry([s[0] for s in state["scans"]])
-            state["odometry"]["kiss_icp_s"] = time.perf_counter() - t
+            full = odometry.lidar_odometry([s[0] for s in state.scans])
+            state.odometry["kiss_icp_s"] = time.perf_counter() - t
             err = odometry.trajectory_error(full, poses)
             t = time.perf_counter()
             est_ng = odometry.lidar_odometry([odometry.remove_ground(s[0])
-                                              for s in state["scans"]])
+                                              for s in state.scans])
             err_ng = odometry.trajectory_error(est_ng, poses)
-            state["odometry"].update({
+            state.odometry.update({
                 "ate_m": err.ate_m, "drift_percent": err.drift_percent,
                 "final_rotation_deg": err.final_rotation_deg,
                 "path_length_m": err.path_length_m,
@@ -364,10 +406,10 @@ def _odometry(src, state, opts, log):
         t = time.perf_counter()
         times = drive.timestamps[kept] if drive.timestamps is not None else None
         poses, checked = odometry.checked_odometry(
-            [s[0] for s in state["scans"]], timestamps=times, images=state["images"],
-            K=state["K"], T_velo_to_cam=drive.T_velo_to_cam2, source=str(drive.root))
-        state["odometry"]["kiss_icp_s"] = time.perf_counter() - t
-        state["odometry"].update(checked.summary())
+            [s[0] for s in state.scans], timestamps=times, images=state.images,
+            K=state.K, T_velo_to_cam=drive.T_velo_to_cam2, source=str(drive.root))
+        state.odometry["kiss_icp_s"] = time.perf_counter() - t
+        state.odometry.update(checked.summary())
         source = "odometry"
         log("[import] poses by LiDAR odometry (ground removed): %.1f m travelled over %d frames"
             "%s" % (checked.length_m, len(poses),
@@ -376,11 +418,11 @@ def _odometry(src, state, opts, log):
         for c in checked.checks:
             log("[import] odometry check, %s: %s (%s)" % (c.name, "agrees" if c.agrees
                                                         else "DISAGREES", c.detail))
-    state["odometry"]["trajectory_length_m"] = odometry.path_length(poses)
-    state["poses"] = poses
-    state["pose_source"] = source
+    state.odometry["trajectory_length_m"] = odometry.path_length(poses)
+    state.poses = poses
+    state.pose_source = source
     T_velo_to_cam2 = drive.T_velo_to_cam2
-    state["cam_poses"] = poses @ np.linalg.inv(T_velo_to_cam2)
+    state.cam_poses = poses @ np.linalg.inv(T_velo_to_cam2)
     # Objects from tracking labels (world = first imported LiDAR frame).
     objects = []
     if src.labels is not None:
@@ -393,13 +435,13 @@ def _odometry(src, state, opts, log):
             all_frames.setdefault(int(f), np.eye(4))
         tracks = kitti.read_tracking_labels(src.labels, world_from_cam=_LenientPoses(all_frames))
         objects = tracks_to_objects(tracks, [int(drive.frames[p]) for p in kept], opts.dynamic)
-    state["objects"] = objects
+    state.objects = objects
     for o in objects:
         decision = "dynamic node" if o.dynamic else "background"
         log("[import] track %d (%s): moves %.2f m over its labels -> %s -> %s"
             % (o.track_id, o.kind, o.displacement_m, "moving" if o.moving else "static",
                decision))
-        state["object_report"].append({"track_id": o.track_id, "kind": o.kind,
+        state.object_report.append({"track_id": o.track_id, "kind": o.kind,
                                        "displacement_m": o.displacement_m,
                                        "moving": o.moving, "dynamic": o.dynamic,
                                        "labelled_frames": int(o.labelled.sum())})
@@ -423,7 +465,7 @@ def _lidar_table(state, opts, log):
     any point order); ``None`` for the table when KITTI's firing order
     assigns the beams sweep by sweep."""
     from .range_image import detect_beam_layout
-    layout = detect_beam_layout([pts for pts, _ in state["scans"]], n_beams=opts.beams)
+    layout = detect_beam_layout([pts for pts, _ in state.scans], n_beams=opts.beams)
     log("[import] LiDAR: %s" % layout.describe())
     if layout.method == "scan_order":
         return layout.n_beams, None
@@ -446,17 +488,17 @@ def _intensity_kind(src, opts):
     return kind, ref
 
 
-def _accumulate(src, state, opts, log):
+def _accumulate(src, state: ImportState, opts, log):
     from .range_image import range_image
 
     beams, table = _lidar_table(state, opts, log)
-    state["intensity"] = _intensity_kind(src, opts)
+    state.intensity = _intensity_kind(src, opts)
     W = opts.azimuth_steps
-    poses = state["poses"]
-    dyn = [o for o in state["objects"] if o.dynamic]
+    poses = state.poses
+    dyn = [o for o in state.objects if o.dynamic]
     bg_pts, bg_int, bg_rng, bg_frame = [], [], [], []
     rimgs, methods, tables, world_points = [], [], [], []
-    for i, (pts, inten) in enumerate(state["scans"]):
+    for i, (pts, inten) in enumerate(state.scans):
         R, t = poses[i][:3, :3], poses[i][:3, 3]
         world = ig.transform_points(pts, poses[i])
         world_points.append(np.hstack([world, inten[:, None]]).astype(np.float32))
@@ -490,41 +532,41 @@ def _accumulate(src, state, opts, log):
         table = np.median(np.stack(good if good else tables), axis=0)
         redo = [i for i, m in enumerate(methods) if m != "scan_order"]
         for i in redo:
-            pts, inten = state["scans"][i]
+            pts, inten = state.scans[i]
             rimgs[i] = range_image(pts, inten, width=W, n_beams=beams, beam_elevations=table)
         if redo:
             log("[import] %d of %d sweeps lost their firing order; beams assigned by "
                 "elevation with the drive's median beam table" % (len(redo), len(tables)))
-    state["lidar_table"] = np.asarray(table)
-    state["beams"] = beams
-    state["range_images"] = rimgs
-    state["world_points"] = world_points
-    state["bg"] = {"points": np.concatenate(bg_pts), "intensity": np.concatenate(bg_int),
-                   "range": np.concatenate(bg_rng), "frame": np.concatenate(bg_frame)}
-    n_acc = len(state["bg"]["points"])
-    state["counts"]["points_accumulated"] = n_acc
-    state["counts"]["points_total"] = int(sum(len(w) for w in world_points))
+    state.lidar_table = np.asarray(table)
+    state.beams = beams
+    state.range_images = rimgs
+    state.world_points = world_points
+    state.bg = BackgroundPoints(np.concatenate(bg_pts), np.concatenate(bg_int),
+                                np.concatenate(bg_rng), np.concatenate(bg_frame))
+    n_acc = len(state.bg.points)
+    state.counts["points_accumulated"] = n_acc
+    state.counts["points_total"] = int(sum(len(w) for w in world_points))
     for o in dyn:
-        state["counts"]["points_" + o.name] = int(sum(len(p) for p in o.points))
+        state.counts["points_" + o.name] = int(sum(len(p) for p in o.points))
     log("[import] %d background points from %d sweeps (%d total; %d in moving objects)"
-        % (n_acc, len(world_points), state["counts"]["points_total"],
+        % (n_acc, len(world_points), state.counts["points_total"],
            sum(sum(len(p) for p in o.points) for o in dyn)))
 
 
 # -- wall extension ---------------------------------------------------------------------
 
-def _extend_walls(state, opts, log, cell=0.25, min_height=1.0, step=0.25, margin_deg=0.6):
-    bg = state["bg"]
-    P = bg["points"].astype(np.float64)
-    poses = state["poses"]
+def _extend_walls(state: ImportState, opts, log, cell=0.25, min_height=1.0, step=0.25, margin_deg=0.6):
+    bg = state.bg
+    P = bg.points.astype(np.float64)
+    poses = state.poses
     if P.shape[0] == 0:
         return
     # Elevation of each point in its own sweep's sensor frame.
-    R = poses[bg["frame"], :3, :3]
-    t = poses[bg["frame"], :3, 3]
+    R = poses[bg.frame, :3, :3]
+    t = poses[bg.frame, :3, 3]
     local = np.einsum("nji,nj->ni", R, P - t)
     elev = np.arctan2(local[:, 2], np.hypot(local[:, 0], local[:, 1]))
-    top_beam = float(np.max(state["lidar_table"]))
+    top_beam = float(np.max(state.lidar_table))
     cut = elev >= top_beam - np.radians(margin_deg)
     keys = np.floor(P[:, :2] / cell).astype(np.int64)
     _, inv = np.unique(keys, axis=0, return_inverse=True)
@@ -538,7 +580,7 @@ def _extend_walls(state, opts, log, cell=0.25, min_height=1.0, step=0.25, margin
     # Seed: the highest top-beam point of each tall cell, if it is the cell's top.
     cand = np.nonzero(cut & tall[inv] & (P[:, 2] >= zmax[inv] - 0.2))[0]
     if cand.size == 0:
-        state["counts"]["wall_extension_points"] = 0
+        state.counts["wall_extension_points"] = 0
         log("[import] no facade cut by the LiDAR's top beam: nothing to extend")
         return
     order = cand[np.argsort(-P[cand, 2])]
@@ -549,26 +591,27 @@ def _extend_walls(state, opts, log, cell=0.25, min_height=1.0, step=0.25, margin
     new = np.repeat(P[seeds], k.size, axis=0)
     new[:, 2] += np.tile(k * step, seeds.size)
     for key, values in (("points", new.astype(np.float32)),
-                        ("intensity", np.repeat(bg["intensity"][seeds], k.size)),
-                        ("range", np.repeat(bg["range"][seeds], k.size)),
-                        ("frame", np.repeat(bg["frame"][seeds], k.size))):
-        bg[key] = np.concatenate([bg[key], values.astype(bg[key].dtype)])
-    bg["extended"] = np.concatenate([np.zeros(len(P), bool), np.ones(n_new, bool)])
-    state["counts"]["wall_extension_points"] = int(n_new)
+                        ("intensity", np.repeat(bg.intensity[seeds], k.size)),
+                        ("range", np.repeat(bg.range[seeds], k.size)),
+                        ("frame", np.repeat(bg.frame[seeds], k.size))):
+        old = getattr(bg, key)
+        setattr(bg, key, np.concatenate([old, values.astype(old.dtype)]))
+    bg.extended = np.concatenate([np.zeros(len(P), bool), np.ones(n_new, bool)])
+    state.counts["wall_extension_points"] = int(n_new)
     log("[import] %d facade columns cut by the top beam extended by %.1f m (%d points)"
         % (seeds.size, opts.extend_walls, n_new))
 
 
 # -- background Gaussians ---------------------------------------------------------------
 
-def _background(state, opts, log):
-    bg = state["bg"]
-    P = bg["points"]
+def _background(state: ImportState, opts, log):
+    bg = state.bg
+    P = bg.points
     if P.shape[0] < opts.knn + 1:
         raise UserError(f"only {P.shape[0]} LiDAR points within {opts.min_range}-"
                         f"{opts.max_range} m of the sensor: nothing to build a scene from")
-    kind, ref = state["intensity"]
-    origins = state["poses"][:, :3, 3][bg["frame"]]
+    kind, ref = state.intensity
+    origins = state.poses[:, :3, 3][bg.frame]
     view = origins - P.astype(np.float64)
     view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-9)
 
@@ -580,7 +623,7 @@ def _background(state, opts, log):
         # at random; wall extensions are already on a coarse grid, so thinning
         # them alike would leave see-through walls (and no cast shadows).
         # They are kept whole, up to 40 % of the budget.
-        ext = bg.get("extended")
+        ext = bg.extended
         ext_vox = ext[first] if ext is not None else np.zeros(nvox, bool)
         ext_ids, real_ids = np.nonzero(ext_vox)[0], np.nonzero(~ext_vox)[0]
         cap = int(0.4 * opts.max_points)
@@ -605,26 +648,79 @@ def _background(state, opts, log):
     scales = ig.tangent_scales(dist, smallest=0.2 * opts.voxel, largest=0.5)
 
     cos = np.abs(np.sum(normals[pslot[used]] * view[used], axis=1))
-    rho_pt = ig.lidar_albedo(bg["intensity"][used], bg["range"][used], cos, kind, ref)
+    rho_pt = ig.lidar_albedo(bg.intensity[used], bg.range[used], cos, kind, ref)
     rho = ig.group_mean(rho_pt, pslot[used], n)
 
-    state["background"] = {"centers": centres.astype(np.float32), "scales": scales,
+    state.background = {"centers": centres.astype(np.float32), "scales": scales,
                            "quaternions": quats.astype(np.float32),
                            "normals": normals.astype(np.float32),
                            "lidar_albedo": rho.astype(np.float32)}
-    state["counts"].update({"voxels": int(nvox), "background_gaussians": int(n)})
+    state.counts.update({"voxels": int(nvox), "background_gaussians": int(n)})
     log("[import] %d voxels of %.3f m -> %d background Gaussians (max %d); LiDAR "
         "intensity '%s'%s" % (nvox, opts.voxel, n, opts.max_points, kind,
                              " (white at %.2f m reads 1)" % ref if kind == "raw" else ""))
 
 
+# -- camera-only geometry --------------------------------------------------------
+
+def _triangulate(src, state: ImportState, opts, log, options=None):
+    """``mi-invrgbl import``'s camera-geometry step: triangulate the training
+    frames (full-resolution images, the drive's own intrinsics), keep the
+    points the LiDAR lacks and append them as Gaussians to the background
+    (``state.background``, before colours). LiDAR albedo of those
+    Gaussians: the median of the LiDAR's (they are never scanned). They
+    count towards ``--max-points`` (at most a quarter of it): as many LiDAR
+    Gaussians, drawn at random, make room."""
+    from .triangulate import (TriangulationOptions, camera_gaussians, far_from, held_out,
+                              triangulate_frames)
+
+    options = options or TriangulationOptions()
+    drive = src.drive
+    positions = state.positions
+    W0, H0 = drive.image_size
+    training = [i for i in range(len(positions)) if not held_out(i)]
+    if len(training) < 2:
+        log("[import] fewer than two training frames: no triangulation")
+        return
+
+    def load(i):
+        return _read_image_uint8(drive.image_paths[positions[i]], (W0, H0))
+
+    pts = triangulate_frames(load, state.cam_poses, drive.K, training, options, log=log)
+    n_all = len(pts)
+    pts = pts.subset(far_from(pts.points, state.bg.points, options.lidar_clearance))
+    bg = state.background
+    n_bg = len(bg["centers"])
+    # The camera-only Gaussians take their place inside --max-points: the
+    # same number of LiDAR Gaussians (drawn at random, seeded) make room.
+    cap = min(len(pts), opts.max_points // 4)
+    if cap < len(pts):
+        far_first = np.argsort(-pts.depth, kind="stable")[:cap]
+        pts = pts.subset(np.sort(far_first))
+    room = max(0, n_bg + len(pts) - opts.max_points)
+    if room:
+        rng = np.random.default_rng([opts.seed, 2])
+        keep = np.sort(rng.choice(n_bg, n_bg - room, replace=False))
+        for key in ("centers", "scales", "quaternions", "normals", "lidar_albedo"):
+            bg[key] = bg[key][keep]
+    g = camera_gaussians(pts, drive.K)
+    g["lidar_albedo"][:] = float(np.median(bg["lidar_albedo"])) if len(bg["lidar_albedo"]) else 0.0
+    for key in ("centers", "scales", "quaternions", "normals", "lidar_albedo"):
+        bg[key] = np.concatenate([bg[key], g[key].astype(bg[key].dtype)])
+    state.counts["camera_gaussians"] = len(pts)
+    state.counts["background_gaussians"] = int(len(bg["centers"]))
+    log("[import] %d triangulated points, %d where the LiDAR has no point within %.2f m "
+        "-> camera-only Gaussians" % (n_all, len(pts), options.lidar_clearance))
+
+
+
 # -- objects ----------------------------------------------------------------------------
 
-def _objects(state, opts, log):
-    kind, ref = state["intensity"]
+def _objects(state: ImportState, opts, log):
+    kind, ref = state.intensity
     rng = np.random.default_rng([opts.seed, 1])
     clouds = {}
-    for o in state["objects"]:
+    for o in state.objects:
         if not o.dynamic:
             continue
         m = opts.object_points
@@ -678,49 +774,49 @@ def _objects(state, opts, log):
         log("[import] %s (%s, %.1fx%.1fx%.1f m): %d Gaussians, %d from LiDAR points, "
             "%d on the box surface" % (o.name, o.kind, *o.size_hwl[::-1], m,
                                        lidar_pts.shape[0], n_fill))
-        for r in state["object_report"]:
+        for r in state.object_report:
             if r["track_id"] == o.track_id:
                 r["gaussians_from_lidar"] = int(lidar_pts.shape[0])
-    state["object_clouds"] = clouds
-    state["counts"]["objects"] = len(clouds)
+    state.object_clouds = clouds
+    state.counts["objects"] = len(clouds)
 
 
 # -- colours -----------------------------------------------------------------------------
 
-def _colours(state, opts, log):
+def _colours(state: ImportState, opts, log):
     from .kitti import srgb_to_linear
 
-    K = state["K"]
-    W, H = state["size"]
+    K = state.K
+    W, H = state.size
     block = max(1, int(round(W / 320)))
-    bg = state["background"]["centers"]
+    bg = state.background["centers"]
     acc_bg = ig.ColourAccumulator(len(bg))
-    objs = [o for o in state["objects"] if o.name in state["object_clouds"]]
-    acc_obj = {o.name: ig.ColourAccumulator(len(state["object_clouds"][o.name]["centers"]))
+    objs = [o for o in state.objects if o.name in state.object_clouds]
+    acc_obj = {o.name: ig.ColourAccumulator(len(state.object_clouds[o.name]["centers"]))
                for o in objs}
-    for i, cam in enumerate(state["cam_poses"]):
+    for i, cam in enumerate(state.cam_poses):
         w2c = np.linalg.inv(cam)
         clouds = [("", bg)]
         for o in objs:
             if o.active(i):
-                c = state["object_clouds"][o.name]["centers"]
+                c = state.object_clouds[o.name]["centers"]
                 T = o.poses[i]
                 clouds.append((o.name, ig.transform_points(c, T)))
         pts = np.concatenate([c for _, c in clouds])
         uv, z, ok = ig.project(pts, w2c, K, (W, H))
         vis = ig.ColourAccumulator.visible(uv, z, ok, (W, H), block)
-        image = srgb_to_linear(state["images"][i].astype(np.float32) / 255.0)
+        image = srgb_to_linear(state.images[i].astype(np.float32) / 255.0)
         start = 0
         for name, c in clouds:
             sl = slice(start, start + len(c))
             acc = acc_bg if name == "" else acc_obj[name]
             acc.add(np.arange(len(c)), uv[sl], z[sl], vis[sl], image)
             start += len(c)
-    state["background"]["albedo"] = acc_bg.mean(0.5)
+    state.background["albedo"] = acc_bg.mean(0.5)
     seen = float(acc_bg.seen.mean()) if len(bg) else 0.0
-    state["counts"]["background_coloured_fraction"] = seen
+    state.counts["background_coloured_fraction"] = seen
     for o in objs:
-        state["object_clouds"][o.name]["albedo"] = acc_obj[o.name].mean(0.5)
+        state.object_clouds[o.name]["albedo"] = acc_obj[o.name].mean(0.5)
     log("[import] %.1f%% of the background Gaussians seen by a camera (others grey 0.5)"
         % (100 * seen))
 
@@ -739,82 +835,15 @@ def _cloud(d, opts, source):
         source=source).validate()
 
 
-def _write(src, state, opts, tmp: Path, scene_name: str, data):
-    import cv2
-    from ..physics.gaussian_ply import write_ply
-    from ..scene.frames import Frames, FrameRecord, ObjectRecord, CameraInfo, LidarInfo
+def _write(src, state: ImportState, opts, tmp: Path, scene_name: str, data):
+    """Everything into ``tmp``: PLYs, observations, frames.json, scene.xml."""
+    from ..scene.frames import Frames
     from ..scene.imported import imported_scene
-    from .images import write_exr
 
-    drive = src.drive
-    obs = tmp / "observations"
-    obs.mkdir()
-    kind, _ = state["intensity"]
-    K = state["K"]
-    W, H = state["size"]
-    dyn = [o for o in state["objects"] if o.name in state["object_clouds"]]
-
-    write_ply(str(tmp / "background.ply"), _cloud(state["background"], opts, "background"))
-    objects = {}
-    for o in dyn:
-        ply = tmp / f"{o.name}.ply"
-        write_ply(str(ply), _cloud(state["object_clouds"][o.name], opts, o.name))
-        objects[o.name] = ObjectRecord(
-            name=o.name, track_id=o.track_id, kind=o.kind,
-            size_hwl=[float(v) for v in o.size_hwl], moving=bool(o.moving), ply=ply,
-            extra={"labelled_frames": [int(i) for i in np.nonzero(o.labelled)[0]],
-                   "displacement_m": round(float(o.displacement_m), 4),
-                   "gaussians_from_lidar": state["object_clouds"][o.name]["from_lidar"],
-                   "frame": "origin at the box centre, x forward (length), y left, z up"})
-
-    ts = drive.timestamps
-    records = []
-    for i, p in enumerate(state["positions"]):
-        name = "%04d" % i
-        src_img = Path(drive.image_paths[p])
-        img_out = obs / f"image_{name}.png"
-        if src_img.suffix.lower() == ".png" and state["images"][i].shape[:2] == \
-                tuple(drive.image_size[::-1]):
-            shutil.copyfile(src_img, img_out)
-        else:
-            cv2.imwrite(str(img_out), state["images"][i][:, :, ::-1])
-        ri = state["range_images"][i]
-        write_exr(str(obs / f"lidar_{name}.exr"),
-                  np.stack([ri.intensity, ri.range, ri.hit.astype(np.float32)], axis=-1),
-                  ["intensity", "range", "hit"])
-        np.save(obs / f"points_{name}.npy", state["world_points"][i])
-        if ts is not None:
-            time_s = float(ts[p] - ts[state["positions"][0]])
-        else:
-            time_s = 0.1 * (p - state["positions"][0])
-        records.append(FrameRecord(
-            index=i, time=round(time_s, 6), held_out=(i % 5 == 4),
-            camera=f"camera_{name}", lidar=f"lidar_{name}",
-            image=img_out, lidar_scan=obs / f"lidar_{name}.exr",
-            points=obs / f"points_{name}.npy",
-            camera_to_world=state["cam_poses"][i], lidar_to_world=state["poses"][i],
-            objects={o.name: o.poses[i] for o in dyn},
-            extra={"source_frame": int(drive.frames[p])}))
-
-    camera = CameraInfo(W, H, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
-                        extra={"image_scale": opts.image_scale}
-                        | ({"source_crop_wh": list(state["crop"])} if state["crop"] else {}))
-    lidar = LidarInfo(state["beams"], opts.azimuth_steps,
-                      [round(float(np.degrees(e)), 6) for e in state["lidar_table"]], kind,
-                      extra={"far_clip": 120.0})
-    extra = {"pose_source": state["pose_source"],
-             "world_frame": "the first imported frame's LiDAR frame (x forward, y left, z up)",
-             "tracks": state["object_report"],
-             "import": {k: v for k, v in vars(opts).items() if k not in ("overwrite", "verify")}}
-    if state["skipped"]:
-        extra["skipped_source_frames"] = state["skipped"]
-    gt = None
-    if src.gt_dir is not None:
-        gt = src.gt_dir.absolute()
-        syn = src.synthetic or {}
-        if "world_from_velo" in syn:
-            first = int(drive.frames[state["positions"][0]])
-            extra["gt_world_from_world"] = np.asarray(syn["world_from_velo"][first]).tolist()
+    objects = _write_clouds(state, opts, tmp)
+    records = _write_observations(src, state, tmp / "observations", list(objects))
+    camera, lidar, extra = _sensors_and_notes(src, state, opts)
+    gt = src.gt_dir.absolute() if src.gt_dir is not None else None
     frames = Frames(tmp / "frames.json", str(Path(data).absolute()), camera, lidar, objects,
                     gt, records, extra=extra)
     frames.save(tmp / "frames.json")
@@ -824,6 +853,94 @@ def _write(src, state, opts, tmp: Path, scene_name: str, data):
     imported_scene(frames, tmp / scene_name, sky_order=opts.sky_order,
                    sun_irradiance=opts.sun_irradiance, comment=comment).write(str(tmp / scene_name))
     return frames
+
+
+def _write_clouds(state: ImportState, opts, tmp: Path) -> dict:
+    """background.ply and one PLY per kept object; the objects' records."""
+    from ..physics.gaussian_ply import write_ply
+    from ..scene.frames import ObjectRecord
+
+    write_ply(str(tmp / "background.ply"), _cloud(state.background, opts, "background"))
+    objects = {}
+    for o in state.objects:
+        if o.name not in state.object_clouds:
+            continue
+        ply = tmp / f"{o.name}.ply"
+        write_ply(str(ply), _cloud(state.object_clouds[o.name], opts, o.name))
+        objects[o.name] = ObjectRecord(
+            name=o.name, track_id=o.track_id, kind=o.kind,
+            size_hwl=[float(v) for v in o.size_hwl], moving=bool(o.moving), ply=ply,
+            extra={"labelled_frames": [int(i) for i in np.nonzero(o.labelled)[0]],
+                   "displacement_m": round(float(o.displacement_m), 4),
+                   "gaussians_from_lidar": state.object_clouds[o.name]["from_lidar"],
+                   "frame": "origin at the box centre, x forward (length), y left, z up"})
+    return objects
+
+
+def _write_observations(src, state: ImportState, obs: Path, object_names) -> list:
+    """Per frame: the image, the LiDAR range image and points; the frame records."""
+    import cv2
+    from ..scene.frames import FrameRecord
+    from .images import write_exr
+
+    drive = src.drive
+    obs.mkdir()
+    tracks = {o.name: o for o in state.objects if o.name in object_names}
+    ts = drive.timestamps
+    records = []
+    for i, p in enumerate(state.positions):
+        name = "%04d" % i
+        src_img = Path(drive.image_paths[p])
+        img_out = obs / f"image_{name}.png"
+        if src_img.suffix.lower() == ".png" and state.images[i].shape[:2] == \
+                tuple(drive.image_size[::-1]):
+            shutil.copyfile(src_img, img_out)
+        else:
+            cv2.imwrite(str(img_out), state.images[i][:, :, ::-1])
+        ri = state.range_images[i]
+        write_exr(str(obs / f"lidar_{name}.exr"),
+                  np.stack([ri.intensity, ri.range, ri.hit.astype(np.float32)], axis=-1),
+                  ["intensity", "range", "hit"])
+        np.save(obs / f"points_{name}.npy", state.world_points[i])
+        if ts is not None:
+            time_s = float(ts[p] - ts[state.positions[0]])
+        else:
+            time_s = 0.1 * (p - state.positions[0])
+        records.append(FrameRecord(
+            index=i, time=round(time_s, 6), held_out=(i % 5 == 4),
+            camera=f"camera_{name}", lidar=f"lidar_{name}",
+            image=img_out, lidar_scan=obs / f"lidar_{name}.exr",
+            points=obs / f"points_{name}.npy",
+            camera_to_world=state.cam_poses[i], lidar_to_world=state.poses[i],
+            objects={n: o.poses[i] for n, o in tracks.items()},
+            extra={"source_frame": int(drive.frames[p])}))
+    return records
+
+
+def _sensors_and_notes(src, state: ImportState, opts):
+    """frames.json's camera and LiDAR records and its top-level notes."""
+    from ..scene.frames import CameraInfo, LidarInfo
+
+    K = state.K
+    W, H = state.size
+    kind, _ = state.intensity
+    camera = CameraInfo(W, H, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
+                        extra={"image_scale": opts.image_scale}
+                        | ({"source_crop_wh": list(state.crop)} if state.crop else {}))
+    lidar = LidarInfo(state.beams, opts.azimuth_steps,
+                      [round(float(np.degrees(e)), 6) for e in state.lidar_table], kind,
+                      extra={"far_clip": 120.0})
+    extra = {"pose_source": state.pose_source,
+             "world_frame": "the first imported frame's LiDAR frame (x forward, y left, z up)",
+             "tracks": state.object_report,
+             "import": {k: v for k, v in vars(opts).items() if k not in ("overwrite", "verify")}}
+    if state.skipped:
+        extra["skipped_source_frames"] = state.skipped
+    syn = src.synthetic or {}
+    if src.gt_dir is not None and "world_from_velo" in syn:
+        first = int(src.drive.frames[state.positions[0]])
+        extra["gt_world_from_world"] = np.asarray(syn["world_from_velo"][first]).tolist()
+    return camera, lidar, extra
 
 
 def _verify(scene_path: Path):

@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import os
 
 import numpy as np
-import drjit as dr
 import mitsuba as mi
 
 from ..physics.fields import MATERIAL

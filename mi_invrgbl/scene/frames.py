@@ -210,20 +210,27 @@ _FRAME_KEYS = {"index", "time", "held_out", "camera", "lidar", "image", "lidar_s
 _TOP_KEYS = {"format", "source", "camera", "lidar", "objects", "ground_truth", "frames"}
 
 
+@dataclass(eq=False)
 class Frames:
     """The contents of ``frames.json`` (see the module docstring)."""
 
-    def __init__(self, path, source, camera, lidar, objects, ground_truth, frames,
-                 extra=None):
-        self.path = Path(path).absolute()
-        self.root = self.path.parent
-        self.source = source
-        self.camera = camera
-        self.lidar = lidar
-        self.objects = objects
-        self.ground_truth = ground_truth
-        self.frames = frames
-        self.extra = dict(extra or {})
+    path: Path
+    source: str | None
+    camera: CameraInfo
+    lidar: LidarInfo
+    objects: dict                 # name -> ObjectRecord, ordered as in the file
+    ground_truth: Path | None
+    frames: list                  # FrameRecord per frame
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.path = Path(self.path).absolute()
+        self.extra = dict(self.extra or {})
+
+    @property
+    def root(self) -> Path:
+        """The folder of frames.json (paths in the file are relative to it)."""
+        return self.path.parent
 
     # -- sequence protocol ----------------------------------------------
     def __len__(self):

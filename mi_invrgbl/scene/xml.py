@@ -370,12 +370,17 @@ def lidar_sensor(ident, elevations_deg, azimuth_steps, to_world, far_clip=120.0,
         transform(to_world), sampler(1, seed), film(azimuth_steps, len(elevations_deg))])
 
 
-def shsun_emitter(ident, sh, order, sun_direction, sun_irradiance) -> ET.Element:
-    """The package's ``shsun`` emitter: ``sh`` holds ``(order + 1)^2`` RGB rows."""
+def shsun_emitter(ident, sh, order, sun_direction, sun_irradiance,
+                  sun_radius=None) -> ET.Element:
+    """The package's ``shsun`` emitter: ``sh`` holds at least ``(order + 1)^2``
+    RGB rows (written one RGB triple per comma-separated group)."""
     sh = np.asarray(sh, np.float64).reshape(-1, 3)[: (order + 1) ** 2]
-    return element("emitter", "shsun", ident, [
-        param("integer", "order", order), param("string", "sh", numbers_text(sh)),
-        vector("sun_direction", sun_direction), rgb("sun_irradiance", sun_irradiance)])
+    children = [param("integer", "order", order),
+                param("string", "sh", ",  ".join(numbers_text(row) for row in sh)),
+                vector("sun_direction", sun_direction), rgb("sun_irradiance", sun_irradiance)]
+    if sun_radius is not None:
+        children.append(param("float", "sun_radius", sun_radius))
+    return element("emitter", "shsun", ident, children)
 
 
 def gaussians_shape(ident, filename, to_world=None) -> ET.Element:
@@ -399,10 +404,10 @@ def spot_to_world(position, direction) -> np.ndarray:
 
 
 def spot_emitter(ident, intensity, to_world, cutoff_angle, beam_width) -> ET.Element:
+    """Mitsuba's ``spot`` light (angles in degrees), its axis the +z of ``to_world``."""
     return element("emitter", "spot", ident, [
-        rgb("intensity", intensity), transform(to_world),
-        param("float", "cutoff_angle", "%g" % cutoff_angle),
-        param("float", "beam_width", "%g" % beam_width)])
+        rgb("intensity", intensity), param("float", "cutoff_angle", cutoff_angle),
+        param("float", "beam_width", beam_width), transform(to_world)])
 
 
 def integrator(type_: str, **params) -> ET.Element:

@@ -15,7 +15,7 @@ Modules, one job each:
 * :mod:`.trajectory` -- ego, camera, LiDAR and moving-car poses; KITTI frames
 * :mod:`.lights`     -- sun/sky for time A and B, night lights
 * :mod:`.scene_xml`  -- the Mitsuba scene files (one per lighting)
-* :mod:`.render`     -- RGB rendering of every frame
+* :mod:`.rgb_frames` -- RGB rendering of every frame
 * :mod:`.groundtruth`-- per-pixel ground-truth maps by ray casting
 * :mod:`.lidar_sim`  -- LiDAR sweeps (intensity, range noise, ray drop)
 * :mod:`.writers`    -- KITTI text/binary files, EXR and PNG

@@ -32,7 +32,7 @@ import numpy as np
 
 from ..errors import UserError
 from . import (config as config_mod, groundtruth, labels, layout as layout_mod, lidar_sim,
-               lights, materials, render, scene_xml, sensors, trajectory, writers)
+               lights, materials, rgb_frames, scene_xml, sensors, trajectory, writers)
 
 KINDS = ("time_a", "time_b", "night")
 
@@ -137,7 +137,7 @@ def _ground_truth(root, cfg, lay, cams, egos, car_poses, sun, pattern):
     gt = os.path.join(root, "gt")
     scene = mi.load_file(os.path.join(gt, "scene_time_a.xml"))
     table = groundtruth.MaterialTable(scene, lay.parts, lay.materials, gt)
-    poser = render.FramePoser(scene, car_poses)
+    poser = rgb_frames.FramePoser(scene, car_poses)
     map_dir = os.path.join(gt, "maps")
     lidar_dir = os.path.join(gt, "lidar")
     os.makedirs(map_dir)
@@ -198,7 +198,7 @@ def generate_street(out: str, cfg: "config_mod.StreetConfig", log=print) -> dict
                 continue
             png = os.path.join(tmp, "sequences", "00", "image_2") if kind == "time_a" else None
             headlights = light_info["night"]["headlights"] if kind == "night" else ()
-            steps.run("render %s (%d spp)" % (kind, cfg.spp), render.render_sequence,
+            steps.run("render %s (%d spp)" % (kind, cfg.spp), rgb_frames.render_sequence,
                       os.path.join(gt, "scene_%s.xml" % kind), os.path.join(gt, kind),
                       cam_sensors, car_poses, headlights, cfg.spp, cfg.seed * 3 + k, png_dir=png)
         os.rename(tmp, out)

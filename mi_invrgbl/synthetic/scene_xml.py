@@ -2,7 +2,7 @@
 
 The renders load these very files (``mi.load_file``), so the XML on disk is
 exactly what produced the images. Each file holds frame 0: the sensor and the
-moving car (and its headlights) at their frame-0 poses; :mod:`.render` moves
+moving car (and its headlights) at their frame-0 poses; :mod:`.rgb_frames` moves
 them per frame with :func:`mi_invrgbl.scene.posing.place`. Meshes and
 textures live next to the XML in ``meshes/`` and ``textures/``. The files are
 built with the package's one scene-XML builder, :mod:`mi_invrgbl.scene.xml`.

@@ -243,7 +243,9 @@ def run_case(spec, args):
     import mitsuba as mi
     from mi_invrgbl.fit.progress import SpeedErrorLog
     from mi_invrgbl.fit.render import freeze
-    from mi_invrgbl.fit.runner import FitConfig, FitContext, init_materials, select_lighting
+    from mi_invrgbl.fit.init import init_materials, load_state
+    from mi_invrgbl.fit.model_selection import choose_lighting
+    from mi_invrgbl.fit.runner import FitConfig, apply_lighting
     from mi_invrgbl.fit.stage1 import Stage1
     from mi_invrgbl.fit.stage2 import FrozenScene, Stage2
     from mi_invrgbl.physics.lighting import LightingCache
@@ -260,8 +262,7 @@ def run_case(spec, args):
                         lidar_columns=args.lidar_columns, batch_rays=args.batch,
                         max_hits=args.max_hits, samples=args.samples, sun=args.sun,
                         seed=args.seed, checkpoint_every=0)
-        ctx = FitContext(scene_path, cfg, log=lambda *a: None)
-        ctx.load()
+        ctx = load_state(scene_path, cfg, log=lambda *a: None)
         ctx.speed_log = SpeedErrorLog(os.path.join(cfg.output, "log.csv"))
         cam0 = ctx.train_frames[0].camera
         lid0 = ctx.train_frames[0].lidar
@@ -287,14 +288,14 @@ def run_case(spec, args):
 
         def stage1_step(k):
             s1.iteration(k + 1)
-            return opt_values(s1.opt)
+            return opt_values(s1.opt.adam)
 
         add("stage 1", timed(stage1_step, args.warmup, args.runs, counter),
             rays=n_s1, dpeak=peak_rss_mb() - rss)
         s1.pull()
         ctx.model.push(ctx.train_frames[0].poses, stage=1)
         t = time.perf_counter()
-        select_lighting(ctx)
+        apply_lighting(ctx, choose_lighting(ctx))
         info["selection_s"] = time.perf_counter() - t
 
         # ------------------------------------------------- freeze + stage 2
@@ -326,7 +327,7 @@ def run_case(spec, args):
                 s2.iteration(k + 1)
             finally:
                 ctx.train_frames = frames
-            return opt_values(s2.opt)
+            return opt_values(s2.opt.adam)
 
         rss = peak_rss_mb()
         add("stage 2", timed(lambda k: on_frame(k, lambda f: None), len(frames), args.runs, counter),

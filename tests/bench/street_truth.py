@@ -18,12 +18,7 @@ import numpy as np
 import cv2
 import mitsuba as mi
 
-<<<<<<< HEAD
-from mi_invrgbl.metrics import srgb_to_linear  # noqa: E402
-=======
-mi.set_variant("llvm_ad_rgb")
 from mi_invrgbl.eval.metrics import srgb_to_linear  # noqa: E402
->>>>>>> scene
 
 LUM = np.array([0.2126, 0.7152, 0.0722])
 

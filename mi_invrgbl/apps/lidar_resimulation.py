@@ -35,7 +35,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 
 from ..errors import UserError
-from ..scene import xml as xml_edit
+from ..scene import xml
 from ..scene.xml import SceneDoc
 
 #: Azimuth steps per sweep of the presets (KITTI's HDL-64E: about 2000 at 10 Hz;
@@ -57,15 +57,9 @@ class SensorSpec:
         children = []
         for key, value in self.params.items():
             kind = "float" if isinstance(value, float) else "string"
-            children.append(xml_edit.param(kind, key, value))
-        children.append(xml_edit.transform(pose))
-        film = xml_edit.element("film", "hdrfilm", None, [
-            xml_edit.param("integer", "width", self.width),
-            xml_edit.param("integer", "height", self.height),
-            xml_edit.element("rfilter", "box"),
-        ])
-        children.append(film)
-        return xml_edit.element("sensor", "lidar", ident, children)
+            children.append(xml.param(kind, key, value))
+        children += [xml.transform(pose), xml.film(self.width, self.height)]
+        return xml.element("sensor", "lidar", ident, children)
 
 
 def sensor_spec(name: str, azimuth_steps: int | None, recorded: dict | None, out_dir: str,
@@ -189,21 +183,21 @@ def lidar_integrator(doc: SceneDoc, model: str | None) -> tuple[ET.Element, str]
                             % fitted)
         elem, source = copy.deepcopy(found), fitted
     else:
-        elem, source = xml_edit.element("integrator", "lidar_return"), "defaults (paper's cos/d^2)"
+        elem, source = xml.element("integrator", "lidar_return"), "defaults (paper's cos/d^2)"
     if model is not None:
-        xml_edit.set_child_param(elem, "string", "model", model)
+        xml.set_child_param(elem, "string", "model", model)
     return elem, source
 
 
 def fit_beam_gains(integrator: ET.Element, beams: int, log=print) -> None:
     """Fitted per-beam gains only apply to the same beam count: else use their mean."""
-    gains = xml_edit.child_param(integrator, "beam_gains")
+    gains = xml.child_param(integrator, "beam_gains")
     if gains is None or "$" in gains:
         return
     values = [float(v) for v in gains.replace(",", " ").split()]
     if len(values) > 1 and len(values) != beams:
         mean = float(np.mean(values))
-        xml_edit.set_child_param(integrator, "string", "beam_gains", "%.6g" % mean)
+        xml.set_child_param(integrator, "string", "beam_gains", "%.6g" % mean)
         log("[lidar] the fitted response has %d beam gains but the sensor %d beams: "
             "using their mean %.4g" % (len(values), beams, mean))
 
@@ -225,14 +219,14 @@ def true_lidar_materials(doc: SceneDoc, materials_json: str) -> int:
         if mat.get("albedo_texture"):
             children.append(_bitmap("albedo", os.path.join(folder, mat["albedo_texture"]), False))
         else:
-            children.append(xml_edit.rgb("albedo", mat["albedo"]))
-        children.append(xml_edit.param("float", "roughness", max(float(mat["roughness"]), 1e-3)))
+            children.append(xml.rgb("albedo", mat["albedo"]))
+        children.append(xml.param("float", "roughness", max(float(mat["roughness"]), 1e-3)))
         if mat.get("lidar_texture"):
             children.append(_bitmap("lidar_albedo", os.path.join(folder, mat["lidar_texture"]), True))
         else:
-            children.append(xml_edit.param("float", "lidar_albedo", mat["lidar_albedo"]))
-        children.append(xml_edit.param("float", "f0", mat.get("f0", 0.04)))
-        new = xml_edit.element("bsdf", "cooktorrance", elem.get("id"), children)
+            children.append(xml.param("float", "lidar_albedo", mat["lidar_albedo"]))
+        children.append(xml.param("float", "f0", mat.get("f0", 0.04)))
+        new = xml.element("bsdf", "cooktorrance", elem.get("id"), children)
         parent = next(p for p in doc.root.iter() if elem in list(p))
         index = list(parent).index(elem)
         parent.remove(elem)
@@ -242,11 +236,11 @@ def true_lidar_materials(doc: SceneDoc, materials_json: str) -> int:
 
 
 def _bitmap(name, path, raw):
-    children = [xml_edit.param("string", "filename", path),
-                xml_edit.param("string", "filter_type", "bilinear")]
+    children = [xml.param("string", "filename", path),
+                xml.param("string", "filter_type", "bilinear")]
     if raw:
-        children.append(xml_edit.param("boolean", "raw", True))
-    e = xml_edit.element("texture", "bitmap", None, children)
+        children.append(xml.param("boolean", "raw", True))
+    e = xml.element("texture", "bitmap", None, children)
     e.set("name", name)
     return e
 

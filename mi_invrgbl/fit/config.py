@@ -1,0 +1,73 @@
+"""The fit's options (``mi-invrgbl fit`` flags map onto these fields)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+from .losses import LossWeights
+
+#: Fields that change the fitted model (a checkpoint written with other values
+#: cannot be resumed). Iteration counts, logging, output and the options that
+#: only force a selection (whose outcome the checkpoint records) are not among them.
+MODEL_FIELDS = ("batch_rays", "fit_width", "lidar_columns", "max_hits", "min_transmittance",
+                "samples", "weights", "bilateral_sigma", "slic_size", "lr_scale", "densify_every",
+                "densify_until", "prune_opacity", "densify_grad", "densify_fraction", "split_scale",
+                "max_gaussians", "stage1_range", "stage1_drop", "seed", "fit_response",
+                "sun_candidates", "sun_gaussians", "per_frame_visibility", "learn_sun_direction",
+                "prune_sky_lookalikes", "sun_visibility", "validation_every")
+
+
+@dataclass
+class FitConfig:
+    output: str = ""
+    stage1_iterations: int = 150
+    stage2_iterations: int = 200
+    batch_rays: int = 4096
+    fit_width: int = 320
+    lidar_columns: int = 512
+    max_hits: int = 24
+    min_transmittance: float = 1e-2
+    samples: int = 16
+    render_samples: str = "auto"  # auto | N: sky samples M written into scene.xml
+    weights: LossWeights = field(default_factory=LossWeights)
+    bilateral_sigma: float = 0.1
+    slic_size: int = 12
+    lr_scale: float = 1.0
+    densify_every: int = 50
+    densify_until: float = 0.7
+    prune_opacity: float = 0.02
+    densify_grad: float = 1e-7
+    densify_fraction: float = 0.02
+    split_scale: float = 0.3
+    max_gaussians: int = 800000
+    stage1_range: float = 1.0
+    stage1_drop: float = 0.1
+    eval_every: int = 50
+    checkpoint_every: int = 50
+    seed: int = 0
+    resume: bool = False
+    sun: str = "auto"            # auto | on | off
+    sh_order: str = "auto"       # auto | 0..3
+    lidar_model: str = "auto"    # auto | pbr | lambertian
+    fit_response: bool = True
+    lobe_iterations: int = 60
+    sun_candidates: int = 48
+    sun_gaussians: int = 20000
+    per_frame_visibility: bool = False
+    learn_sun_direction: bool = False  # stage 2 refines the selected sun direction (opt-in)
+    prune_sky_lookalikes: bool = True  # drop sky-coloured Gaussians with only sky behind them
+    sun_visibility: str = "learn"  # learn | trace: the paper's per-Gaussian v_sun, or traced only
+    #: Every n-th training frame (``index % n == n // 2``) is a validation frame:
+    #: not trained on, it scores the model selection. 0: no validation split
+    #: (selection then scores training frames). Held-out frames never take part.
+    validation_every: int = 5
+
+    def to_json(self):
+        d = asdict(self)
+        d["weights"] = self.weights.as_dict()
+        return d
+
+    def model_fields(self) -> dict:
+        """The values of :data:`MODEL_FIELDS` (for the resume fingerprint)."""
+        d = self.to_json()
+        return {k: d[k] for k in MODEL_FIELDS}

@@ -1,0 +1,183 @@
+"""Initialisation: the fit's state from an imported scene, and the LiDAR
+response and LiDAR albedo that stage 2 starts from."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+import drjit as dr
+import mitsuba as mi
+
+from ..errors import UserError
+from ..physics.sh import num_coeffs
+from ..scene.frames import Frames
+from ..scene.loading import load_scene
+from .config import FitConfig
+from .model import GaussianModel
+from .observations import load_observations
+from .render import Response, dominant_hit
+from .response import estimate_response, prior_for
+from .state import FitState, SkyKeys
+
+
+def split_validation(train, every):
+    """(training, validation) frames: every ``every``-th training frame by
+    index (``index % every == every // 2``, midway between the held-out
+    ``index % 5 == 4``) validates, as long as two frames are left to train on."""
+    if every <= 0:
+        return list(train), []
+    val = [f for f in train if f.index % every == every // 2]
+    if len(train) - len(val) < 2:
+        return list(train), []
+    return [f for f in train if f not in val], val
+
+
+def load_state(scene_path, config: FitConfig, log=print) -> FitState:
+    """Load the imported scene, ``frames.json`` and the observations."""
+    t = time.perf_counter()
+    scene_path = os.path.abspath(scene_path)
+    frames = Frames.load(scene_path)
+    scene = load_scene(scene_path)
+    params = mi.traverse(scene)
+    moving = [n for n, o in frames.objects.items() if o.moving]
+    model = GaussianModel(scene, object_names=moving)
+    # Objects are loaded at their frame-0 pose: keep them in their own frame.
+    for name, node in model.nodes.items():
+        if node.dynamic:
+            pose0 = frames[0].objects.get(name)
+            if pose0 is not None:
+                model.set_cloud(name, model.cloud(name, stage=2), pose=pose0)
+    camera_integrator = scene.integrator()
+    if not hasattr(camera_integrator, "shade_gaussian_hits"):
+        camera_integrator = mi.load_dict({"type": "invrgbl", "samples": config.samples})
+    lidar_integrator = mi.load_dict({"type": "lidar_return", "max_hits": config.max_hits,
+                                     "min_transmittance": config.min_transmittance})
+    sky = None
+    for emitter in scene.emitters():
+        if hasattr(emitter, "sky_radiance"):
+            eid = emitter.id() or "sky"
+            if eid + ".sh" in params:
+                sky = SkyKeys(emitter, eid + ".sh", eid + ".sun_irradiance", eid + ".sun_direction")
+    if sky is None:
+        raise UserError("%s: the scene has no 'shsun' emitter to fit the sky and sun with" % scene_path)
+    observations = load_observations(scene, frames, config.fit_width, config.lidar_columns)
+    train = [o for o in observations if not o.held_out]
+    held_out = [o for o in observations if o.held_out]
+    if not train:
+        raise UserError("%s: every frame is held out; nothing to train on" % frames.path)
+    train, validation = split_validation(train, config.validation_every)
+    seen = [o.lidar.intensity[o.lidar.hit] for o in train if o.lidar is not None]
+    seen = np.concatenate(seen) if seen else np.zeros(0)
+    seen = seen[seen > 0]
+    n_beams = frames.lidar.beams
+    state = FitState(
+        scene_path=scene_path, config=config, log=log, rng=np.random.default_rng(config.seed),
+        frames=frames, scene=scene, params=params, model=model,
+        camera_integrator=camera_integrator, lidar_integrator=lidar_integrator, sky=sky,
+        observations=observations, train_frames=train, validation_frames=validation,
+        held_out_frames=held_out,
+        intensity_scale=float(np.percentile(seen, 95)) if seen.size else 1.0,
+        response=Response(mi.Float(2.0), mi.Float(1.0), dr.ones(mi.Float, max(n_beams, 1))))
+    state.times["load"] = time.perf_counter() - t
+    cam = train[0].camera
+    log("[fit] %s: %d Gaussians in %d node(s) (%s), %d training + %d validation + %d held-out "
+        "frames, %dx%d pixels per image; loaded in %.1f s"
+        % (scene_path, model.total, len(model.nodes),
+           ", ".join("%s%s" % (n, " (moving)" if v.dynamic else "") for n, v in model.nodes.items()),
+           len(train), len(validation), len(held_out), cam.width if cam else 0,
+           cam.height if cam else 0, state.times["load"]))
+    return state
+
+
+def sh_mask(order, emitter_order) -> mi.Float:
+    """1 for the SH coefficients up to ``order``, 0 above (the emitter's layout)."""
+    mask = np.zeros((num_coeffs(emitter_order), 3), np.float32)
+    mask[: num_coeffs(int(order))] = 1
+    return mi.Float(mask.ravel())
+
+
+def init_materials(ctx: FitState, frozen):
+    """LiDAR albedo and response from a log-linear regression over the
+    training scans."""
+    cfg = ctx.config
+    t = time.perf_counter()
+    # (RGB albedo and the sun's level: Stage2.init_shading, once visibility is traced.)
+    # LiDAR: per return, the dominant Gaussian, its distance and incidence.
+    I, D, C, B, S = [], [], [], [], []
+    offsets, off = {}, 0
+    for name, node in ctx.model.nodes.items():
+        offsets[ctx.model.shape_ids[name]] = off
+        off += node.count
+    for f in ctx.train_frames:
+        if f.lidar is None or f.index not in frozen.lidar:
+            continue
+        fh = frozen.lidar[f.index]
+        ray, nid, prim, w, tt = dominant_hit(fh)
+        hit = f.lidar.hit.ravel()[ray] & (w > 0.3)
+        ray, nid, prim, tt = ray[hit], nid[hit], prim[hit], tt[hit]
+        d = np.stack([np.array(f.lidar.rays.d[k]) for k in range(3)], 1)[ray]
+        gid = np.array([offsets[int(i)] for i in nid]) + prim if len(nid) else prim
+        normals = np.concatenate([ctx.model.nodes[n].numpy("normal") for n in ctx.model.nodes])
+        n = normals[gid]
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        I.append(f.lidar.intensity.ravel()[ray])
+        D.append(tt + np.array(f.lidar.near)[ray])
+        C.append(np.abs(np.sum(n * d, axis=1)))
+        B.append(np.array(f.lidar.row)[ray])
+        S.append(gid)
+    info = {}
+    if I:
+        I, D, C, B, S = map(np.concatenate, (I, D, C, B, S))
+        # On a road seen from a roof-mounted LiDAR cos(theta) ~ h / d, so the
+        # angle and range exponents are nearly collinear. Fit the range
+        # exponent and gains with the Lambertian cos (a = 1) first and free
+        # the angle exponent only if that lowers the residual clearly.
+        kw = dict(n_surfaces=ctx.model.total, fit_gains=cfg.fit_response,
+                  prior=prior_for(getattr(ctx.frames.lidar, "intensity", None)))
+        res = estimate_response(I, D, C, B, S, ctx.frames.lidar.beams, fit_range=cfg.fit_response,
+                                fit_angle=False, **kw)
+        if cfg.fit_response:
+            free = estimate_response(I, D, C, B, S, ctx.frames.lidar.beams, **kw)
+            if free.residual_rms < 0.9 * res.residual_rms:
+                res = free
+        info = {"range_exponent": float(res.range_exponent), "angle_exponent": float(res.angle_exponent),
+                "residual_rms": float(res.residual_rms), "returns_used": int(res.n_used)}
+        if cfg.fit_response:
+            ctx.response.range_exponent = mi.Float(float(res.range_exponent))
+            ctx.response.angle_exponent = mi.Float(float(res.angle_exponent))
+            gains = np.asarray(res.beam_gains, np.float32)
+            ctx.response.beam_gains = mi.Float(gains)
+        else:
+            info["fixed"] = "the paper's cos/d^2 response"
+        # Per-Gaussian LiDAR albedo from the regression where a Gaussian was hit.
+        rho = _surface_rho(res, S)
+        if rho is not None:
+            ids, values = rho
+            scale = np.percentile(values, 99) if values.size else 1.0
+            scale = max(scale, 1e-6)
+            allrho = np.concatenate([ctx.model.nodes[n].numpy("lidar_albedo") for n in ctx.model.nodes])
+            allrho[ids] = np.clip(values / scale, 0, 1)
+            if cfg.fit_response:
+                ctx.response.beam_gains = ctx.response.beam_gains * float(scale)
+            info["albedo_scale"] = float(scale)
+            start = 0
+            for name, node in ctx.model.nodes.items():
+                node.values["lidar_albedo"] = mi.Float(allrho[start:start + node.count].astype(np.float32))
+                start += node.count
+    ctx.selection["response_init"] = info
+    ctx.times["material init"] = time.perf_counter() - t
+    ctx.log("[fit] LiDAR response init: %s (%.1f s)" % (
+        ", ".join("%s %.3g" % (k, v) for k, v in info.items() if isinstance(v, float)),
+        ctx.times["material init"]))
+
+
+def _surface_rho(res, surface_ids):
+    """(Gaussian ids, rho) from an estimate_response result, whatever its layout."""
+    rho = getattr(res, "rho", None)
+    if rho is None:
+        return None
+    rho = np.asarray(rho, np.float64)
+    ids = np.nonzero(np.isfinite(rho))[0]
+    return ids, rho[ids]

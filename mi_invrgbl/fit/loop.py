@@ -1,0 +1,69 @@
+"""The training loop shared by both stages: iterations with a progress bar,
+periodic evaluation into the speed/error log, checkpoints and Ctrl-C."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+from .progress import ProgressBar, peak_rss_mb
+from .state import FitState
+
+
+class Interrupted(Exception):
+    """Ctrl-C during a stage: a checkpoint was written."""
+
+
+@dataclass
+class StageRun:
+    """What the loop needs of a stage.
+
+    ``step(it)`` runs one iteration and returns (loss, terms, ok);
+    ``evaluate()`` returns (held-out PSNR, held-out intensity RMSE) for the log;
+    ``after_step(it, total)`` is the stage's own between-iterations work (stage 1
+    densifies there), or None; ``checkpoint(stage, it)`` writes a checkpoint.
+    """
+    name: str
+    step: Callable
+    evaluate: Callable
+    checkpoint: Callable
+    after_step: Callable | None = None
+
+
+def _log_name(term):
+    return "drop" if term == "raydrop" else "prior" if term in ("nor", "mat") else term
+
+
+def train(state: FitState, run: StageRun, start, total):
+    """Run iterations ``start + 1 .. total``; returns the last one."""
+    cfg = state.config
+    bar = ProgressBar(run.name, total, start_at=start)
+    t_stage = time.perf_counter()
+    it = start
+    try:
+        for it in range(start + 1, total + 1):
+            loss, terms, _ = run.step(it)
+            if run.after_step is not None:
+                run.after_step(it, total)
+            bar.update(it, "loss %.4g" % loss)
+            if it % cfg.eval_every == 0 or it == total:
+                psnr, rmse = run.evaluate()
+                state.speed_log.add(
+                    wall_s="%.2f" % (time.perf_counter() - state.t_start + state.wall_offset),
+                    stage=run.name, iteration=it, loss="%.6g" % loss,
+                    **{"loss_" + _log_name(k): "%.6g" % v for k, v in terms.items()},
+                    heldout_psnr="%.3f" % psnr,
+                    heldout_intensity_rmse=("%.5f" % rmse) if rmse == rmse else "",
+                    peak_rss_mb="%.0f" % peak_rss_mb())
+            if cfg.checkpoint_every and it % cfg.checkpoint_every == 0:
+                run.checkpoint(run.name, it)
+    except KeyboardInterrupt:
+        bar.close()
+        state.log("\n[fit] interrupted at %s iteration %d: writing a checkpoint and the outputs so far"
+                  % (run.name, it))
+        run.checkpoint(run.name, it - 1)
+        raise Interrupted() from None
+    bar.close()
+    state.times[run.name] = state.times.get(run.name, 0.0) + time.perf_counter() - t_stage
+    return it

@@ -1,0 +1,213 @@
+"""Model selection: each choice scores candidates and returns its pick.
+
+Nothing here changes the fit's state; :mod:`.runner` applies a choice.
+Choices that score a fitted model (the LiDAR lobe, the sky sample count M)
+score it on the validation frames (:attr:`FitState.selection_frames`), never
+on the held-out frames, which only ``eval`` and the progress log score.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import drjit as dr
+
+from ..physics import hits as hitlib
+from ..physics.lighting import LightingCache
+from .evaluate import score_stage2
+from .losses import LossWeights
+from .selection import fit_sh_orders, pad_sh, select_sun
+from .state import FitState
+from .variables import GaussianVariable, ResponseVariable
+
+
+@dataclass
+class LightingChoice:
+    report: dict               # {"sun": ..., "sh": ...} as recorded in metrics.json
+    use_sun: bool
+    sh_order: int
+    sh_init: np.ndarray        # SH coefficients (emitter's order) the sky starts from
+    sun_direction: list | None
+    sun_irradiance: float      # placeholder until stage 2 estimates it
+
+
+@dataclass
+class LobeChoice:
+    report: dict               # model, pbr_rmse, lambertian_rmse, scored_on, ...
+    #: The Lambertian refit's LiDAR-side values (handle -> array) when it won.
+    values: dict = field(default_factory=dict)
+
+
+def _scoring_frames(ctx: FitState, has):
+    """Frames that score a choice and have the data ``has(frame)`` asks for."""
+    val = [f for f in ctx.validation_frames if has(f)]
+    if val:
+        return val, "validation"
+    return [f for f in ctx.train_frames if has(f)], "training"
+
+
+def choose_lighting(ctx: FitState) -> LightingChoice:
+    """Sun and SH order from stage-1 colours and the sky seen in the training
+    images. Renders the current model; changes nothing else."""
+    cfg = ctx.config
+    ctx.model.push(ctx.train_frames[0].poses, stage=1)
+    # Gaussians seen in training images, weighted by how much they are seen.
+    weight, seen_colour = {}, {}
+    sky_dirs, sky_rgb = [], []
+    with dr.suspend_grad():
+        for f in ctx.train_frames:
+            if f.camera is None:
+                continue
+            ctx.model.push(f.poses, stage=1)
+            nodes = hitlib.gaussian_nodes(ctx.scene)
+            hl = hitlib.trace(ctx.scene, f.camera.rays, cfg.max_hits, cfg.min_transmittance, nodes)
+            g = hitlib.eval_gaussian_hits(nodes, f.camera.rays, hl)
+            w, t_after = hitlib.blend_weights(g)
+            ids, prims, ww = np.array(g.node_ids), np.array(g.prims), np.array(w)
+            pix = f.camera.image.reshape(-1, 3)[np.array(g.ray)]
+            for name, sid in ctx.model.shape_ids.items():
+                m = ids == sid
+                acc = weight.setdefault(name, np.zeros(ctx.model.nodes[name].count, np.float64))
+                np.add.at(acc, prims[m], ww[m])
+                col = seen_colour.setdefault(name, np.zeros((ctx.model.nodes[name].count, 3)))
+                np.add.at(col, prims[m], ww[m, None] * pix[m])
+            sky = (np.array(t_after) > 0.95) & ~np.array(hl.surface_valid)
+            if sky.any():
+                d = np.stack([np.array(f.camera.rays.d[k]) for k in range(3)], 1)[sky]
+                sky_dirs.append(d)
+                sky_rgb.append(f.camera.image.reshape(-1, 3)[sky])
+    # ---- sun
+    centers, normals, lum, wts = [], [], [], []
+    for name, node in ctx.model.nodes.items():
+        if node.dynamic:
+            continue  # objects move: their shadows are not a fixed function of geometry
+        cloud = ctx.model.cloud(name, stage=1)
+        seen = weight.get(name, np.zeros(node.count)) > 0.05
+        centers.append(cloud.centers[seen])
+        normals.append(cloud.normals[seen])
+        # Radiance each Gaussian shows in the images (weighted mean of the
+        # pixels it contributes to): what the light did, before any fitting.
+        colour = seen_colour[name][seen] / weight[name][seen][:, None]
+        lum.append(colour @ np.array([0.2126, 0.7152, 0.0722]))
+        wts.append(weight[name][seen])
+    centers, normals = np.concatenate(centers), np.concatenate(normals)
+    lum, wts = np.concatenate(lum), np.concatenate(wts)
+    # Normals face the cameras that saw them (PCA normals have no sign).
+    cam_pos = np.mean([f.camera.sensor.world_transform().translation() for f in ctx.train_frames
+                       if f.camera is not None], axis=0).ravel()
+    flip = np.sum((cam_pos[None, :] - centers) * normals, axis=1) < 0
+    normals[flip] *= -1
+    if centers.shape[0] > cfg.sun_gaussians:
+        pick = ctx.rng.choice(centers.shape[0], cfg.sun_gaussians, replace=False)
+        centers, normals, lum, wts = centers[pick], normals[pick], lum[pick], wts[pick]
+    sel = {}
+    if cfg.sun == "off":
+        sel["sun"] = {"use_sun": False, "forced": True}
+    elif centers.shape[0] >= 50:
+        sel["sun"] = select_sun(ctx.scene, centers, normals, lum, wts, cfg.sun_candidates)
+        if cfg.sun == "on":
+            sel["sun"]["use_sun"], sel["sun"]["forced"] = True, True
+    else:
+        sel["sun"] = {"use_sun": cfg.sun == "on", "reason": "too few Gaussians seen"}
+    use_sun = bool(sel["sun"].get("use_sun"))
+    # ---- SH order
+    emitter_order = ctx.sky_emitter.order
+    if sky_dirs and sum(len(d) for d in sky_dirs) >= 64:
+        d, rgb = np.concatenate(sky_dirs), np.concatenate(sky_rgb)
+        chosen, errors, coeffs = fit_sh_orders(d, rgb, max_order=emitter_order, seed=cfg.seed)
+        sel["sh"] = {"held_out_rmse": {str(k): v for k, v in errors.items()}, "order": chosen,
+                     "sky_pixels": int(d.shape[0])}
+        init = pad_sh(coeffs[chosen], emitter_order)
+    else:
+        chosen = min(emitter_order, 1)
+        sel["sh"] = {"order": chosen, "reason": "fewer than 64 sky pixels seen"}
+        init = pad_sh(np.array([[1.0, 1.0, 1.0]]) * 0.5 / 0.28209479, emitter_order)
+    if cfg.sh_order != "auto":
+        chosen = int(cfg.sh_order)
+        sel["sh"]["order"], sel["sh"]["forced"] = chosen, True
+    s = sel["sun"]
+    return LightingChoice(report=sel, use_sun=use_sun, sh_order=int(chosen), sh_init=init,
+                          sun_direction=s["direction"] if use_sun else None,
+                          # A non-zero placeholder keeps the sun in the scene until stage
+                          # 2's start (Stage2.init_shading) estimates its irradiance.
+                          sun_irradiance=max(s.get("sun_level", 1.0) / 0.5, 0.1) if use_sun else 0.0)
+
+
+def log_lighting(ctx: FitState, choice: LightingChoice, seconds):
+    s = choice.report["sun"]
+    ctx.log("[fit] lighting: sun %s (best direction %s explains %.1f %% of within-surface "
+            "shading, %.1f %% beyond sky occlusion, typical direction %.1f %%; sun/sky %.2f); "
+            "SH order %d; %.1f s" % ("used" if choice.use_sun else "not used",
+                                     np.round(s.get("direction", [0, 0, 1]), 2).tolist(),
+                                     100 * s.get("gain", float("nan")),
+                                     100 * s.get("gain_over_sky", float("nan")),
+                                     100 * s.get("median_gain", float("nan")),
+                                     s.get("sun_to_sky", float("nan")), choice.sh_order, seconds))
+
+
+def choose_lidar_lobe(ctx: FitState, stage2, frozen) -> LobeChoice:
+    """Keep the specular LiDAR lobe only where it lowers validation intensity error.
+
+    The pbr fit is scored on the validation scans; then the LiDAR-side
+    variables (LiDAR albedo, response) are refitted for ``lobe_iterations``
+    with the Lambertian model (RGB side unchanged) and scored the same way.
+    The refit lives in its own optimiser: nothing is written back here.
+    """
+    from .stage2 import Stage2
+    cfg = ctx.config
+    if not any(f.lidar is not None for f in ctx.observations):
+        return LobeChoice({"model": cfg.lidar_model if cfg.lidar_model != "auto" else "pbr",
+                           "pbr_rmse": float("nan"), "reason": "no LiDAR scans"})
+    frames, scored_on = _scoring_frames(ctx, lambda f: f.lidar is not None)
+    _, rmse_pbr = score_stage2(stage2, frames)
+    result = {"pbr_rmse": rmse_pbr, "scored_on": scored_on}
+    if cfg.lidar_model != "auto" or cfg.weights.lidar == 0:
+        result["model"] = cfg.lidar_model if cfg.lidar_model != "auto" else "pbr"
+        result["forced"] = True
+        return LobeChoice(result)
+    lam = Stage2(ctx, frozen, model_kind="lambertian")
+    lam.build_optimizer(only=lambda v: isinstance(v, ResponseVariable) or (
+        isinstance(v, GaussianVariable) and v.field.name == "lidar_albedo"))
+    w = LossWeights.parse("rgb=0,nor=0,mat=0,rgb2lidar=0,lidar2rgb=0", cfg.weights)
+    for it in range(cfg.lobe_iterations):
+        lam.iteration(it, weights=w)
+    _, rmse_lam = score_stage2(lam, frames)
+    result["lambertian_rmse"] = rmse_lam
+    if rmse_lam < rmse_pbr:
+        result["model"] = "lambertian"
+        return LobeChoice(result, {var: dr.detach(value) for var, value in lam.opt.items()})
+    result["model"] = "pbr"
+    return LobeChoice(result)
+
+
+def choose_render_samples(ctx: FitState, stage2, frozen, candidates=(4, 8, 16, 32)) -> dict:
+    """Sky samples M for rendering the fitted scene: the smallest whose
+    validation PSNR is within 0.1 dB of the best. Each is scored on up to
+    three validation frames with its own traced sky visibility; the fit
+    itself keeps ``samples``."""
+    cfg = ctx.config
+    fitted = cfg.samples
+    if cfg.render_samples != "auto":
+        return {"samples": int(cfg.render_samples), "forced": True}
+    frames, scored_on = _scoring_frames(ctx, lambda f: f.camera is not None)
+    frames = frames[:3]
+    if not frames or cfg.weights.rgb == 0:
+        return {"samples": fitted, "reason": "no camera frame to score on"}
+    scores = {}
+    for m in candidates:
+        # The fit's own caches already hold the visibility for its M. Other M
+        # get fresh caches, shared by the frames that shared one, so a static
+        # scene traces its visibility once per M.
+        fresh, caches = {}, {}
+        for f in frames:
+            old = frozen.caches[f.index]
+            caches[f.index] = old if m == fitted else fresh.setdefault(id(old), LightingCache())
+        t = time.perf_counter()
+        p, _ = score_stage2(stage2, frames, samples=m, caches=caches)
+        scores[m] = {"psnr": p, "seconds": time.perf_counter() - t}
+    best = max(v["psnr"] for v in scores.values())
+    chosen = min(m for m, v in scores.items() if v["psnr"] >= best - 0.1)
+    return {"samples": chosen, "fitted_with": fitted, "scored_on": scored_on,
+            "by_samples": {str(m): v for m, v in scores.items()}}

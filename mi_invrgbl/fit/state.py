@@ -1,0 +1,113 @@
+"""What the fit's steps share: one declared dataclass, built by :func:`.init.load_state`.
+
+Every field is declared here; no step adds attributes from outside. Steps
+that choose something (:mod:`.model_selection`) read this state and return
+their choice; the recipe in :mod:`.runner` applies it.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import mitsuba as mi
+
+from ..scene.frames import Frames
+from .config import FitConfig
+from .model import GaussianModel
+from .observations import FrameObservation
+from .progress import SpeedErrorLog
+from .render import Response
+
+
+@dataclass
+class SkyKeys:
+    """The scene's ``shsun`` emitter and its ``mi.traverse`` keys."""
+    emitter: object
+    sh: str
+    sun_irradiance: str
+    sun_direction: str
+
+
+@dataclass
+class FitState:
+    scene_path: str
+    config: FitConfig
+    log: Callable
+    rng: np.random.Generator
+    frames: Frames
+    scene: mi.Scene
+    params: mi.SceneParameters
+    model: GaussianModel
+    camera_integrator: object
+    lidar_integrator: object
+    sky: SkyKeys
+    observations: list
+    #: Frames the optimiser steps on.
+    train_frames: list
+    #: Training frames kept out of the gradient steps to score model selection.
+    validation_frames: list
+    #: Frames only ``eval`` scores (and the progress log reports); never selection.
+    held_out_frames: list
+    #: 95th percentile of the observed training intensities (L_lidar's normaliser).
+    intensity_scale: float
+    response: Response
+    speed_log: SpeedErrorLog | None = None
+    use_sun: bool = True
+    #: SH order of the fitted sky; coefficients above it are held at zero by ``sh_mask``.
+    sh_order: int | None = None
+    sh_mask: mi.Float | None = None
+    sun_visibility_learned: bool = False
+    selection: dict = field(default_factory=dict)
+    times: dict = field(default_factory=dict)
+    lr_state: dict = field(default_factory=dict)
+    t_start: float = 0.0
+    #: Wall time of the run a resumed fit continues.
+    wall_offset: float = 0.0
+    _image_cache: dict = field(default_factory=dict, repr=False)
+    _prior_cache: dict = field(default_factory=dict, repr=False)
+
+    # The sky's keys under the names the stages use.
+    @property
+    def sky_key(self):
+        return self.sky.sh
+
+    @property
+    def sun_key(self):
+        return self.sky.sun_irradiance
+
+    @property
+    def sun_dir_key(self):
+        return self.sky.sun_direction
+
+    @property
+    def sky_emitter(self):
+        return self.sky.emitter
+
+    @property
+    def fit_dir(self):
+        return self.config.output or os.path.join(os.path.dirname(self.scene_path), "fit")
+
+    @property
+    def selection_frames(self) -> list:
+        """Frames that score a model choice: the validation split, else the
+        training frames. Never the held-out frames."""
+        return self.validation_frames or self.train_frames
+
+    def image_array(self, frame: FrameObservation):
+        if frame.index not in self._image_cache:
+            img = frame.camera.image.reshape(-1, 3)
+            self._image_cache[frame.index] = mi.Color3f(*[mi.Float(img[:, c].copy()) for c in range(3)])
+        return self._image_cache[frame.index]
+
+    def prior_array(self, frame: FrameObservation, kind):
+        key = (frame.index, kind)
+        if key not in self._prior_cache:
+            p = frame.camera.priors[kind].reshape(frame.camera.width * frame.camera.height, -1)
+            if p.shape[1] >= 3:
+                self._prior_cache[key] = mi.Vector3f(*[mi.Float(p[:, c].copy()) for c in range(3)])
+            else:
+                self._prior_cache[key] = mi.Float(p[:, 0].copy())
+        return self._prior_cache[key]
