@@ -137,7 +137,7 @@ def _carry_frames(scene, staging: Path, target: Path) -> None:
     (paths rewritten relative to it), so that ``eval`` finds the frames and
     their observations from the fit folder alone."""
     from ..scene.frames import Frames
-    if (target / "frames.json").is_file() or (target.parent / "frames.json").is_file():
+    if (target.parent / "frames.json").is_file():
         return
     try:
         frames = Frames.load(scene)
@@ -163,8 +163,9 @@ def run(args):
     config.output = str(out.path)
     t0 = time.time()
     try:
-        metrics = run_fit(args.scene, config, log=out.log)
+        # Before the fit: its outputs step loads the fitted scene with its frames.
         _carry_frames(args.scene, out.path, out.target)
+        metrics = run_fit(args.scene, config, log=out.log)
     except BaseException:
         out.discard()
         raise
