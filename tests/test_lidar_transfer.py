@@ -11,7 +11,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_invrgbl.fit.response import estimate_response, prior_for
-from mi_invrgbl.synthetic import StreetConfig, generate_street, render, writers
+from mi_invrgbl.synthetic import StreetConfig, generate_street, rgb_frames, writers
 from mi_invrgbl.synthetic.groundtruth import oriented_normals, rows
 
 TRAIN = range(0, 8)          # poses 0..7 m
@@ -26,7 +26,7 @@ def observe(street):
     traj = json.loads((street / "gt" / "trajectory.json").read_text())
     table = np.radians(traj["lidar"]["elevation_table_deg"])
     scene = mi.load_file(str(street / "gt" / "scene_time_a.xml"))
-    poser = render.FramePoser(scene, np.array(traj["world_from_moving_car"]))
+    poser = rgb_frames.FramePoser(scene, np.array(traj["world_from_moving_car"]))
     out = {}
     for i in list(TRAIN) + list(NEW):
         poser.set_frame(i)

@@ -114,7 +114,7 @@ def load_points(paths, max_points: int | None = None, seed: int = 0) -> np.ndarr
 
 def from_frames(frames, indices=None, **kwargs) -> NearestNeighbourIntensity:
     """The baseline built from the training frames' point files of a
-    :class:`mi_invrgbl.scene_graph.Frames` (default: every non-held-out frame
+    :class:`mi_invrgbl.scene.frames.Frames` (default: every non-held-out frame
     that has a ``points`` file)."""
     if indices is None:
         indices = frames.train_indices()

@@ -205,7 +205,7 @@ def load_lidar_integrator(scene_lidar_xml, model: str | None = None):
 def _pose(scene, frames, k):
     """The scene at frame ``k`` (objects posed; acceleration structure refreshed)."""
     import mitsuba as mi
-    from ..scene_graph import set_frame
+    from ..scene.posing import set_frame
     cam, lidar = set_frame(scene, frames, k)
     if frames.objects:
         params = mi.traverse(scene)
@@ -227,7 +227,7 @@ def score_scene(scene_xml, scene_lidar_xml=None, positions=None, model: str | No
     sensor frame) for a non-spinning sensor (see :func:`frame_rays`).
     """
     import mitsuba as mi
-    from ..scene_graph import Frames
+    from ..scene.frames import Frames
     frames = Frames.load(scene_xml)
     if scene_lidar_xml is None:
         cand = os.path.join(os.path.dirname(str(scene_xml)), "scene_lidar.xml")

@@ -519,7 +519,7 @@ def scene_return_samples(scene, integrator, frames, positions, lidar_size=None):
     import mitsuba as mi
     from ..io.images import read_exr
     from ..plugins.lidar_return import LidarReturnIntegrator
-    from ..scene_graph import set_frame
+    from ..scene.posing import set_frame
     saved = integrator.return_model
     integrator.return_model = None
     out = [[] for _ in range(5)]
@@ -578,7 +578,7 @@ def fit_scene_ray_drop(scene_xml, scene_lidar_xml, log=print) -> dict:
     import mitsuba as mi
     import xml.etree.ElementTree as ET
     from ..physics.lidar_response import return_scores
-    from ..scene_graph import Frames
+    from ..scene.frames import Frames
     frames = Frames.load(scene_xml)
     scene = mi.load_file(str(scene_xml))
     root = ET.parse(scene_lidar_xml).getroot()

@@ -222,12 +222,13 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
         s_dist = si.t + near
         s_int = response(s_factor, s_cos, s_dist, row)
         c = hitlib.composite_front_to_back(
-            g, w, t_after, {"intensity": intensity_k, "alpha": 1.0, "range": dist, "rho": rho},
+            g, w, t_after,
+            {"intensity": intensity_k, "alpha": 1.0, "range": dist, "rho": rho, "cos": g.cos_theta},
             {"intensity": dr.select(surf, s_int, 0.0), "alpha": dr.select(surf, 1.0, 0.0),
-             "range": dr.select(surf, s_dist, 0.0), "rho": dr.select(surf, s_rho, 0.0)})
+             "range": dr.select(surf, s_dist, 0.0), "rho": dr.select(surf, s_rho, 0.0),
+             "cos": dr.select(surf, s_cos, 0.0)})
         intensity, alpha, depth_sum, rho_sum = c["intensity"], c["alpha"], c["range"], c["rho"]
-
-        cos_sum = hitlib.composite(g, w, g.cos_theta) + s_w * dr.select(surf, s_cos, 0.0)
+        cos_sum = c["cos"]
         hit = alpha >= self.hit_threshold
         norm = dr.rcp(dr.maximum(alpha, 1e-8))
         rng_m = depth_sum * norm
