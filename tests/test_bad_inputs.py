@@ -691,3 +691,29 @@ def test_mitsuba_message_keeps_the_useful_lines():
     two = ('[parser.cpp:444] While loading /x/b.xml (line 1, col 25): Found 1 unreferenced '
            'property in shape plugin of type "sphere":\n  - float "radiu": 1')
     assert mitsuba_message(RuntimeError(two)).endswith(': - float "radiu": 1')
+
+
+@pytest.mark.slow
+def test_fit_folder_lifecycle(imported, tmp_path, capsys):
+    """A real fit outside its import folder: refused again, resumed, replaced
+    (a user's file kept), and scored from the fit folder alone."""
+    fit = tmp_path / "elsewhere" / "fit"
+    base = ["fit", str(imported / "scene.xml"), "-o", str(fit), "--stage1", "2", "--width", "64",
+            "--lidar-columns", "64", "--batch", "512", "--render-samples", "4"]
+    assert _run(base + ["--stage2", "2"], capsys)[0] == 0
+    assert outdir.read_marker(fit).complete and (fit / "checkpoints" / "latest.npz").is_file()
+    fitted = (fit / "scene.xml").read_bytes()
+    code, err = _run(base + ["--stage2", "2"], capsys)
+    assert code == 2 and "holds a finished fit" in err
+    assert (fit / "scene.xml").read_bytes() == fitted
+    (fit / "notes.txt").write_text("mine")
+    code = main(base + ["--stage2", "3", "--resume"])
+    out = capsys.readouterr().out
+    assert code == 0 and "resuming from %s" % (fit / "checkpoints" / "latest.npz") in out
+    assert json.loads((fit / "metrics.json").read_text())["config"]["stage2_iterations"] == 3
+    assert _run(base + ["--stage2", "2", "--overwrite"], capsys)[0] == 0
+    assert (fit / "notes.txt").read_text() == "mine"
+    assert list((tmp_path / "elsewhere").iterdir()) == [fit]
+    code, err = _run(["eval", str(fit), "--frames", "4", "--no-baseline", "--no-relight"], capsys)
+    assert code == 0, err
+    assert "mean" in json.loads((fit / "metrics.json").read_text())
