@@ -370,6 +370,40 @@ def b_cuda_without_gpu(street, imported, tmp_path):
     return ["-m", "cuda_ad_rgb", "render", str(_plane_scene(tmp_path)), "-o", str(tmp_path / "r")]
 
 
+def b_relight_into_fit(street, imported, tmp_path):
+    _fake_fit(tmp_path / "fit")
+    return ["relight", str(street / "gt" / "scene_time_a.xml"), "--sun-elevation", "30",
+            "-o", str(tmp_path / "fit"), "--overwrite"]
+
+
+def b_render_into_scene_folder(street, imported, tmp_path):
+    (tmp_path / "s").mkdir()
+    scene = _plane_scene(tmp_path / "s")
+    return ["render", str(scene), "-o", str(tmp_path / "s"), "--overwrite"]
+
+
+def b_lidar_into_import(street, imported, tmp_path):
+    imp_dir = _copy_import(imported, tmp_path)
+    return ["lidar", str(street / "gt" / "scene_time_a.xml"), "--pose", "5,-1.75,1.73",
+            "-o", str(imp_dir), "--overwrite"]
+
+
+def b_eval_onto_scene(street, imported, tmp_path):
+    imp_dir = _copy_import(imported, tmp_path)
+    return ["eval", str(imp_dir / "scene.xml"), "-o", str(imp_dir / "scene.xml")]
+
+
+def b_eval_onto_user_file(street, imported, tmp_path):
+    (tmp_path / "results.json").write_text('{"mine": 1}')
+    return ["eval", str(imported / "scene.xml"), "-o", str(tmp_path / "results.json")]
+
+
+def b_make_scene_existing(street, imported, tmp_path):
+    (tmp_path / "street").mkdir()
+    (tmp_path / "street" / "keep.txt").write_text("x")
+    return ["make-scene", "street", str(tmp_path / "street"), "--frames", "2"]
+
+
 # -- eval / insert -------------------------------------------------------------
 def b_eval_renamed_channels(street, imported, tmp_path):
     from mi_invrgbl.io.images import read_exr, write_exr
@@ -440,6 +474,12 @@ CASES = [
     Case("bad flag", "lidar", b_lidar_azimuth_0, 2, "--azimuth-steps must be at least 1"),
     Case("bad flag", "relight", b_relight_no_light, 2, "no new lighting given"),
     Case("environment", "render", b_cuda_without_gpu, 2, "-m cuda_ad_rgb: variant 'cuda_ad_rgb' needs an NVIDIA GPU"),
+    Case("misused output", "relight", b_relight_into_fit, 2, "holds a finished fit; choose another folder"),
+    Case("misused output", "render", b_render_into_scene_folder, 2, "holds the input"),
+    Case("misused output", "lidar", b_lidar_into_import, 2, "holds the results of 'mi-invrgbl import'"),
+    Case("misused output", "eval", b_eval_onto_scene, 2, "scene.xml: the metrics file is an input"),
+    Case("misused output", "eval", b_eval_onto_user_file, 2, "results.json: exists and was not written by mi-invrgbl"),
+    Case("misused output", "make-scene", b_make_scene_existing, 2, "street: the output folder already exists"),
     Case("corrupt file", "eval", b_eval_renamed_channels, 2, "lidar_0004.exr"),
     Case("bad input", "insert", b_insert_track, 0, ""),
 ]
@@ -565,6 +605,9 @@ def test_overwrite_keeps_what_the_tool_did_not_write(street, tmp_path, capsys):
     assert not (out / "observations" / "image_0002.png").exists()     # the old import's
     assert len(json.loads((out / "frames.json").read_text())["frames"]) == 2
     assert [p.name for p in tmp_path.iterdir()] == ["scene"]
+    umask = os.umask(0)
+    os.umask(umask)
+    assert out.stat().st_mode & 0o777 == 0o777 & ~umask        # not a private 0700 folder
 
 
 def test_unwritable_output_before_any_work(imported, tmp_path, capsys, monkeypatch):
@@ -693,8 +736,17 @@ def test_mitsuba_message_keeps_the_useful_lines():
     assert mitsuba_message(RuntimeError(two)).endswith(': - float "radiu": 1')
 
 
+def _other_import(street, tmp_path) -> Path:
+    """The same street imported with fewer frames: another scene for the fit."""
+    from mi_invrgbl.io.importer import ImportOptions, import_scene
+    out = tmp_path / "other" / "scene.xml"
+    import_scene(street, out, ImportOptions(frames="0:4", max_points=20000, azimuth_steps=256),
+                 log=_quiet)
+    return out
+
+
 @pytest.mark.slow
-def test_fit_folder_lifecycle(imported, tmp_path, capsys):
+def test_fit_folder_lifecycle(street, imported, tmp_path, capsys):
     """A real fit outside its import folder: refused again, resumed, replaced
     (a user's file kept), and scored from the fit folder alone."""
     fit = tmp_path / "elsewhere" / "fit"
@@ -713,6 +765,12 @@ def test_fit_folder_lifecycle(imported, tmp_path, capsys):
     assert json.loads((fit / "metrics.json").read_text())["config"]["stage2_iterations"] == 3
     assert _run(base + ["--stage2", "2", "--overwrite"], capsys)[0] == 0
     assert (fit / "notes.txt").read_text() == "mine"
+    # another scene's checkpoint is refused, naming the fit folder's file
+    before = _snapshot(fit)
+    code, err = _run(["fit", str(_other_import(street, tmp_path)), "-o", str(fit), "--stage1", "2",
+                      "--stage2", "2", "--width", "64", "--lidar-columns", "64", "--resume"], capsys)
+    assert code == 2 and "%s: checkpoint is of another fit" % (fit / "checkpoints" / "latest.npz") in err
+    assert _unchanged(before, fit) == []
     assert list((tmp_path / "elsewhere").iterdir()) == [fit]
     code, err = _run(["eval", str(fit), "--frames", "4", "--no-baseline", "--no-relight"], capsys)
     assert code == 0, err

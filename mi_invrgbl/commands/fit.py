@@ -166,6 +166,10 @@ def run(args):
         # Before the fit: its outputs step loads the fitted scene with its frames.
         _carry_frames(args.scene, out.path, out.target)
         metrics = run_fit(args.scene, config, log=out.log)
+    except UserError as exc:
+        out.discard()
+        # Name the output folder, not the temporary one the fit worked in.
+        raise UserError(str(exc).replace(str(out.path), str(out.target))) from None
     except BaseException:
         out.discard()
         raise
