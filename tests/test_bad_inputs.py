@@ -352,6 +352,38 @@ def b_gaussians_zero_scale(street, imported, tmp_path):
     return ["render", str(_plane_scene(tmp_path, ply="zs.ply")), "-o", str(tmp_path / "r")]
 
 
+def b_gaussians_truncated(street, imported, tmp_path):
+    scene = _plane_scene(tmp_path)
+    ply = tmp_path / "gaussians_plane.ply"
+    ply.write_bytes(ply.read_bytes()[:3000])
+    return ["render", str(scene), "-o", str(tmp_path / "r")]
+
+
+def b_gaussians_missing(street, imported, tmp_path):
+    return ["render", str(_plane_scene(tmp_path, ply="none.ply")), "-o", str(tmp_path / "r")]
+
+
+def b_fit_missing_frames(street, imported, tmp_path):
+    imp_dir = _copy_import(imported, tmp_path)
+    (imp_dir / "frames.json").unlink()
+    return ["fit", str(imp_dir / "scene.xml"), "-o", str(tmp_path / "fit")]
+
+
+def b_fit_corrupt_frames(street, imported, tmp_path):
+    imp_dir = _copy_import(imported, tmp_path)
+    text = (imp_dir / "frames.json").read_text()
+    (imp_dir / "frames.json").write_text(text[: len(text) // 2])
+    return ["fit", str(imp_dir / "scene.xml"), "-o", str(tmp_path / "fit")]
+
+
+def b_fit_nan_frames(street, imported, tmp_path):
+    imp_dir = _copy_import(imported, tmp_path)
+    data = json.loads((imp_dir / "frames.json").read_text())
+    data["frames"][1]["camera_to_world"][0][3] = "NaN"
+    (imp_dir / "frames.json").write_text(json.dumps(data).replace('"NaN"', "NaN"))
+    return ["fit", str(imp_dir / "scene.xml"), "-o", str(tmp_path / "fit")]
+
+
 def b_lidar_intensity_scale(street, imported, tmp_path):
     return ["lidar", str(street / "gt" / "scene_time_a.xml"), "--pose", "5,-1.75,1.73",
             "--intensity-scale", "-3", "-o", str(tmp_path / "l")]
@@ -468,7 +500,13 @@ CASES = [
          "plane.xml (line 33, col 6): failed to instantiate shape plugin of type \"gaussians\": "
          "gaussians 'ground': unknown parameter(s) 'extnt'"),
     Case("degenerate Gaussians", "render", b_gaussians_nan, 2, "gaussians_plane.ply: field 'centers' holds NaN/inf"),
-    Case("degenerate Gaussians", "render", b_gaussians_zero_quaternion, 2, "zq.ply"),
+    Case("degenerate Gaussians", "render", b_gaussians_zero_quaternion, 2,
+         "zq.ply: 1 zero-length rotation quaternion"),
+    Case("corrupt file", "render", b_gaussians_truncated, 2, "gaussians_plane.ply: truncated PLY"),
+    Case("missing file", "render", b_gaussians_missing, 2, "none.ply: file not found"),
+    Case("missing file", "fit", b_fit_missing_frames, 2, "frames.json: frames.json not found"),
+    Case("corrupt file", "fit", b_fit_corrupt_frames, 2, "frames.json: not valid JSON"),
+    Case("NaN and inf", "fit", b_fit_nan_frames, 2, "frames.json: not valid JSON (non-standard JSON constant NaN)"),
     Case("degenerate Gaussians", "render", b_gaussians_zero_scale, 0, ""),
     Case("bad flag", "lidar", b_lidar_intensity_scale, 2, "--intensity-scale must be a positive number"),
     Case("bad flag", "lidar", b_lidar_azimuth_0, 2, "--azimuth-steps must be at least 1"),
@@ -497,7 +535,8 @@ def _run(argv, capsys):
 def test_bad_input(case, street, imported, tmp_path, capsys, monkeypatch):
     if case.build is b_cuda_without_gpu and dr.has_backend(dr.JitBackend.CUDA):
         pytest.skip("this machine has a CUDA GPU")
-    if case.command == "fit" and case.code != 0 and case.build is not b_fit_missing_lidar_exr:
+    if case.command == "fit" and case.build not in (b_fit_missing_lidar_exr, b_fit_missing_frames,
+                                                    b_fit_corrupt_frames, b_fit_nan_frames):
         _no_fit(monkeypatch)
     argv = case.build(street, imported, tmp_path)
     monkeypatch.chdir(tmp_path)
