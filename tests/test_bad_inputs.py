@@ -814,3 +814,46 @@ def test_fit_folder_lifecycle(street, imported, tmp_path, capsys):
     code, err = _run(["eval", str(fit), "--frames", "4", "--no-baseline", "--no-relight"], capsys)
     assert code == 0, err
     assert "mean" in json.loads((fit / "metrics.json").read_text())
+
+
+def _dead_pid() -> int:
+    import subprocess
+    import sys
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def _killed_run(target, command, pid):
+    """What a run killed after writing a checkpoint leaves beside ``target``."""
+    out = outdir.prepare(target, command)
+    (out.path / "checkpoints").mkdir()
+    (out.path / "checkpoints" / "latest.npz").write_text("killed run")
+    marker = outdir.read_marker(out.path)
+    marker.pid = pid
+    (out.path / outdir.MARKER).write_text(marker.to_json())
+    return out.path
+
+
+def test_a_killed_fit_is_resumed_from_its_temporary_folder(tmp_path):
+    target = tmp_path / "fit"
+    staging = _killed_run(target, "fit", _dead_pid())
+    assert not target.exists()
+    # a new run says what was left; --resume continues from it
+    with pytest.warns(UserWarning, match="left by a run of 'mi-invrgbl fit' that was killed"):
+        outdir.prepare(target, "fit").discard()
+    with pytest.warns(UserWarning, match="continuing from .fit.partial"):
+        out = outdir.prepare(target, "fit", resume=True)
+    assert out.path == staging
+    assert (out.path / "checkpoints" / "latest.npz").read_text() == "killed run"
+    out.commit()
+    assert (target / "checkpoints" / "latest.npz").read_text() == "killed run"
+    assert [p.name for p in tmp_path.iterdir()] == ["fit"]
+
+
+def test_two_runs_never_write_one_folder(tmp_path):
+    target = tmp_path / "fit"
+    _killed_run(target, "fit", os.getppid())       # a live process
+    with pytest.raises(outdir.UserError, match="another 'mi-invrgbl fit' \\(process %d\\)"
+                       % os.getppid()):
+        outdir.prepare(target, "fit")
