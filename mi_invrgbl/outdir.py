@@ -22,6 +22,10 @@ write:
   (``.NAME.partial-XXXX``) and renamed into place when the command finishes,
   so an interrupted run leaves the old folder untouched (and at most a hidden
   ``.partial`` folder beside it), never a mix of old and new files.
+* The temporary folder is marked at once (command and process id): a second
+  run into the same output is refused while the first one writes, and the
+  folder of a run that was killed is reported by the next run and continued
+  by ``fit --resume``.
 
 Use::
 
