@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import warnings
 
 from .errors import UserError
 
@@ -56,14 +57,24 @@ def set_variant(name: str) -> None:
     register_plugins()
 
 
+def _warning_printer(command):
+    def show(message, category, filename, lineno, file=None, line=None):
+        print("mi-invrgbl %s: warning: %s" % (command, message), file=sys.stderr)
+    return show
+
+
 def main(argv=None) -> int:
     from . import outdir
     parser = build_parser()
     args = parser.parse_args(argv)
     outdir.command_line[:] = ["mi-invrgbl"] + list(sys.argv[1:] if argv is None else argv)
     try:
-        set_variant(args.variant)
-        return int(args.run(args) or 0)
+        with warnings.catch_warnings():
+            # A warning is one line naming the command, like an error.
+            warnings.simplefilter("always", UserWarning)
+            warnings.showwarning = _warning_printer(args.command)
+            set_variant(args.variant)
+            return int(args.run(args) or 0)
     except UserError as exc:
         print("mi-invrgbl %s: error: %s" % (args.command, exc), file=sys.stderr)
         return 2

@@ -22,6 +22,10 @@ write:
   (``.NAME.partial-XXXX``) and renamed into place when the command finishes,
   so an interrupted run leaves the old folder untouched (and at most a hidden
   ``.partial`` folder beside it), never a mix of old and new files.
+* The temporary folder is marked at once (command and process id): a second
+  run into the same output is refused while the first one writes, and the
+  folder of a run that was killed is reported by the next run and continued
+  by ``fit --resume``.
 
 Use::
 
@@ -80,12 +84,15 @@ class Marker:
     version: str = ""
     command_line: list[str] = field(default_factory=list)
     written: str = ""
+    pid: int = 0                 # a temporary folder's: the process writing it
 
     def to_json(self) -> str:
-        return json.dumps({"format": FORMAT, "tool": "mi-invrgbl", "version": self.version,
-                           "command": self.command, "command_line": self.command_line,
-                           "complete": self.complete, "written": self.written,
-                           "files": sorted(self.files)}, indent=1)
+        data = {"format": FORMAT, "tool": "mi-invrgbl", "version": self.version,
+                "command": self.command, "command_line": self.command_line,
+                "complete": self.complete, "written": self.written, "files": sorted(self.files)}
+        if self.pid:
+            data["pid"] = self.pid
+        return json.dumps(data, indent=1)
 
 
 def read_marker(folder) -> Marker | None:
@@ -105,7 +112,7 @@ def read_marker(folder) -> Marker | None:
     return Marker(command=data.get("command"), files=list(files),
                   complete=bool(data.get("complete", True)), version=str(data.get("version", "")),
                   command_line=list(data.get("command_line") or []),
-                  written=str(data.get("written", "")))
+                  written=str(data.get("written", "")), pid=int(data.get("pid") or 0))
 
 
 def _write_marker(folder: Path, marker: Marker) -> None:
@@ -175,6 +182,38 @@ def _describe(marker: Marker) -> str:
     return "the results of 'mi-invrgbl %s'" % marker.command
 
 
+def _alive(pid: int) -> bool:
+    if pid <= 0 or pid == os.getpid():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def leftovers(target, command: str) -> list:
+    """Temporary folders of ``command`` beside ``target`` whose process is gone
+    (a run killed before it could clean up), newest first. Raises when a live
+    process is still writing one: two runs must not write the same folder."""
+    target = Path(os.path.abspath(target))
+    found = []
+    if not target.parent.is_dir():
+        return found
+    for p in target.parent.glob(".%s.partial-*" % target.name):
+        marker = read_marker(p) if p.is_dir() and not p.is_symlink() else None
+        if marker is None or marker.command != command:
+            continue
+        if _alive(marker.pid):
+            raise UserError("%s: another 'mi-invrgbl %s' (process %d) is writing this folder; "
+                            "wait for it to finish or choose another folder"
+                            % (target, command, marker.pid))
+        found.append(p)
+    return sorted(found, key=lambda p: p.stat().st_mtime, reverse=True)
+
+
 def _check_writable(folder: Path) -> list:
     """Create ``folder`` (and its parents) if needed and check that files can be made
     in it; returns the folders it created, deepest first."""
@@ -242,7 +281,7 @@ class OutputFolder:
         """Move the results into ``target``; returns ``target``."""
         if self.done:
             raise RuntimeError("output folder already committed or discarded")
-        mark(self.path, self.command, complete)
+        mark(self.path, self.command, complete)      # replaces the temporary marker (no pid)
         target = self.target
         if not target.exists():
             os.rename(self.path, target)
@@ -350,9 +389,25 @@ def prepare(target, command: str, inputs=(), overwrite: bool = False, resume: bo
             if not os.access(target, os.W_OK | os.X_OK):
                 raise UserError("%s: cannot replace the files in %s (permission denied)"
                                 % (target, what))
+    stale = leftovers(target, command)
+    if resume and stale and (previous is None or not (target / MARKER).exists()
+                             or stale[0].stat().st_mtime > (target / MARKER).stat().st_mtime):
+        # A run killed without cleaning up: its temporary folder is newer
+        # than the results; continue from it.
+        staging = stale[0]
+        _write_marker(staging, Marker(command=command, files=[], complete=False,
+                                      command_line=list(command_line), pid=os.getpid()))
+        warnings.warn("%s: continuing from %s, left by a run that was killed"
+                      % (target, staging.name), UserWarning, stacklevel=2)
+        return OutputFolder(target, staging, command, previous)
     if resume and previous is None:
         raise UserError("%s: nothing to resume (no results of 'mi-invrgbl %s' there)"
                         % (target, command))
+    for p in stale:
+        warnings.warn("%s: left by a run of 'mi-invrgbl %s' that was killed%s; remove it when "
+                      "it is not needed" % (p, command, " (--resume continues from it)"
+                                            if command == "fit" else ""),
+                      UserWarning, stacklevel=2)
     parent = target.parent
     created = _check_writable(parent)
     try:
@@ -364,6 +419,10 @@ def prepare(target, command: str, inputs=(), overwrite: bool = False, resume: bo
     umask = os.umask(0)
     os.umask(umask)
     os.chmod(staging, 0o777 & ~umask)
+    # Marked at once: a run killed later leaves a folder recognisable as this
+    # command's (and a live run's folder is not taken by a second one).
+    _write_marker(staging, Marker(command=command, files=[], complete=False,
+                                  command_line=list(command_line), pid=os.getpid()))
     out = OutputFolder(target, staging, command, previous, created)
     if resume:
         try:

@@ -352,6 +352,38 @@ def b_gaussians_zero_scale(street, imported, tmp_path):
     return ["render", str(_plane_scene(tmp_path, ply="zs.ply")), "-o", str(tmp_path / "r")]
 
 
+def b_gaussians_truncated(street, imported, tmp_path):
+    scene = _plane_scene(tmp_path)
+    ply = tmp_path / "gaussians_plane.ply"
+    ply.write_bytes(ply.read_bytes()[:3000])
+    return ["render", str(scene), "-o", str(tmp_path / "r")]
+
+
+def b_gaussians_missing(street, imported, tmp_path):
+    return ["render", str(_plane_scene(tmp_path, ply="none.ply")), "-o", str(tmp_path / "r")]
+
+
+def b_fit_missing_frames(street, imported, tmp_path):
+    imp_dir = _copy_import(imported, tmp_path)
+    (imp_dir / "frames.json").unlink()
+    return ["fit", str(imp_dir / "scene.xml"), "-o", str(tmp_path / "fit")]
+
+
+def b_fit_corrupt_frames(street, imported, tmp_path):
+    imp_dir = _copy_import(imported, tmp_path)
+    text = (imp_dir / "frames.json").read_text()
+    (imp_dir / "frames.json").write_text(text[: len(text) // 2])
+    return ["fit", str(imp_dir / "scene.xml"), "-o", str(tmp_path / "fit")]
+
+
+def b_fit_nan_frames(street, imported, tmp_path):
+    imp_dir = _copy_import(imported, tmp_path)
+    data = json.loads((imp_dir / "frames.json").read_text())
+    data["frames"][1]["camera_to_world"][0][3] = "NaN"
+    (imp_dir / "frames.json").write_text(json.dumps(data).replace('"NaN"', "NaN"))
+    return ["fit", str(imp_dir / "scene.xml"), "-o", str(tmp_path / "fit")]
+
+
 def b_lidar_intensity_scale(street, imported, tmp_path):
     return ["lidar", str(street / "gt" / "scene_time_a.xml"), "--pose", "5,-1.75,1.73",
             "--intensity-scale", "-3", "-o", str(tmp_path / "l")]
@@ -368,6 +400,40 @@ def b_relight_no_light(street, imported, tmp_path):
 
 def b_cuda_without_gpu(street, imported, tmp_path):
     return ["-m", "cuda_ad_rgb", "render", str(_plane_scene(tmp_path)), "-o", str(tmp_path / "r")]
+
+
+def b_relight_into_fit(street, imported, tmp_path):
+    _fake_fit(tmp_path / "fit")
+    return ["relight", str(street / "gt" / "scene_time_a.xml"), "--sun-elevation", "30",
+            "-o", str(tmp_path / "fit"), "--overwrite"]
+
+
+def b_render_into_scene_folder(street, imported, tmp_path):
+    (tmp_path / "s").mkdir()
+    scene = _plane_scene(tmp_path / "s")
+    return ["render", str(scene), "-o", str(tmp_path / "s"), "--overwrite"]
+
+
+def b_lidar_into_import(street, imported, tmp_path):
+    imp_dir = _copy_import(imported, tmp_path)
+    return ["lidar", str(street / "gt" / "scene_time_a.xml"), "--pose", "5,-1.75,1.73",
+            "-o", str(imp_dir), "--overwrite"]
+
+
+def b_eval_onto_scene(street, imported, tmp_path):
+    imp_dir = _copy_import(imported, tmp_path)
+    return ["eval", str(imp_dir / "scene.xml"), "-o", str(imp_dir / "scene.xml")]
+
+
+def b_eval_onto_user_file(street, imported, tmp_path):
+    (tmp_path / "results.json").write_text('{"mine": 1}')
+    return ["eval", str(imported / "scene.xml"), "-o", str(tmp_path / "results.json")]
+
+
+def b_make_scene_existing(street, imported, tmp_path):
+    (tmp_path / "street").mkdir()
+    (tmp_path / "street" / "keep.txt").write_text("x")
+    return ["make-scene", "street", str(tmp_path / "street"), "--frames", "2"]
 
 
 # -- eval / insert -------------------------------------------------------------
@@ -434,12 +500,24 @@ CASES = [
          "plane.xml (line 33, col 6): failed to instantiate shape plugin of type \"gaussians\": "
          "gaussians 'ground': unknown parameter(s) 'extnt'"),
     Case("degenerate Gaussians", "render", b_gaussians_nan, 2, "gaussians_plane.ply: field 'centers' holds NaN/inf"),
-    Case("degenerate Gaussians", "render", b_gaussians_zero_quaternion, 2, "zq.ply"),
+    Case("degenerate Gaussians", "render", b_gaussians_zero_quaternion, 2,
+         "zq.ply: 1 zero-length rotation quaternion"),
+    Case("corrupt file", "render", b_gaussians_truncated, 2, "gaussians_plane.ply: truncated PLY"),
+    Case("missing file", "render", b_gaussians_missing, 2, "none.ply: file not found"),
+    Case("missing file", "fit", b_fit_missing_frames, 2, "frames.json: frames.json not found"),
+    Case("corrupt file", "fit", b_fit_corrupt_frames, 2, "frames.json: not valid JSON"),
+    Case("NaN and inf", "fit", b_fit_nan_frames, 2, "frames.json: not valid JSON (non-standard JSON constant NaN)"),
     Case("degenerate Gaussians", "render", b_gaussians_zero_scale, 0, ""),
     Case("bad flag", "lidar", b_lidar_intensity_scale, 2, "--intensity-scale must be a positive number"),
     Case("bad flag", "lidar", b_lidar_azimuth_0, 2, "--azimuth-steps must be at least 1"),
     Case("bad flag", "relight", b_relight_no_light, 2, "no new lighting given"),
     Case("environment", "render", b_cuda_without_gpu, 2, "-m cuda_ad_rgb: variant 'cuda_ad_rgb' needs an NVIDIA GPU"),
+    Case("misused output", "relight", b_relight_into_fit, 2, "holds a finished fit; choose another folder"),
+    Case("misused output", "render", b_render_into_scene_folder, 2, "holds the input"),
+    Case("misused output", "lidar", b_lidar_into_import, 2, "holds the results of 'mi-invrgbl import'"),
+    Case("misused output", "eval", b_eval_onto_scene, 2, "scene.xml: the metrics file is an input"),
+    Case("misused output", "eval", b_eval_onto_user_file, 2, "results.json: exists and was not written by mi-invrgbl"),
+    Case("misused output", "make-scene", b_make_scene_existing, 2, "street: the output folder already exists"),
     Case("corrupt file", "eval", b_eval_renamed_channels, 2, "lidar_0004.exr"),
     Case("bad input", "insert", b_insert_track, 0, ""),
 ]
@@ -457,7 +535,8 @@ def _run(argv, capsys):
 def test_bad_input(case, street, imported, tmp_path, capsys, monkeypatch):
     if case.build is b_cuda_without_gpu and dr.has_backend(dr.JitBackend.CUDA):
         pytest.skip("this machine has a CUDA GPU")
-    if case.command == "fit" and case.code != 0 and case.build is not b_fit_missing_lidar_exr:
+    if case.command == "fit" and case.build not in (b_fit_missing_lidar_exr, b_fit_missing_frames,
+                                                    b_fit_corrupt_frames, b_fit_nan_frames):
         _no_fit(monkeypatch)
     argv = case.build(street, imported, tmp_path)
     monkeypatch.chdir(tmp_path)
@@ -565,6 +644,9 @@ def test_overwrite_keeps_what_the_tool_did_not_write(street, tmp_path, capsys):
     assert not (out / "observations" / "image_0002.png").exists()     # the old import's
     assert len(json.loads((out / "frames.json").read_text())["frames"]) == 2
     assert [p.name for p in tmp_path.iterdir()] == ["scene"]
+    umask = os.umask(0)
+    os.umask(umask)
+    assert out.stat().st_mode & 0o777 == 0o777 & ~umask        # not a private 0700 folder
 
 
 def test_unwritable_output_before_any_work(imported, tmp_path, capsys, monkeypatch):
@@ -691,3 +773,87 @@ def test_mitsuba_message_keeps_the_useful_lines():
     two = ('[parser.cpp:444] While loading /x/b.xml (line 1, col 25): Found 1 unreferenced '
            'property in shape plugin of type "sphere":\n  - float "radiu": 1')
     assert mitsuba_message(RuntimeError(two)).endswith(': - float "radiu": 1')
+
+
+def _other_import(street, tmp_path) -> Path:
+    """The same street imported with fewer frames: another scene for the fit."""
+    from mi_invrgbl.io.importer import ImportOptions, import_scene
+    out = tmp_path / "other" / "scene.xml"
+    import_scene(street, out, ImportOptions(frames="0:4", max_points=20000, azimuth_steps=256),
+                 log=_quiet)
+    return out
+
+
+@pytest.mark.slow
+def test_fit_folder_lifecycle(street, imported, tmp_path, capsys):
+    """A real fit outside its import folder: refused again, resumed, replaced
+    (a user's file kept), and scored from the fit folder alone."""
+    fit = tmp_path / "elsewhere" / "fit"
+    base = ["fit", str(imported / "scene.xml"), "-o", str(fit), "--stage1", "2", "--width", "64",
+            "--lidar-columns", "64", "--batch", "512", "--render-samples", "4"]
+    assert _run(base + ["--stage2", "2"], capsys)[0] == 0
+    assert outdir.read_marker(fit).complete and (fit / "checkpoints" / "latest.npz").is_file()
+    fitted = (fit / "scene.xml").read_bytes()
+    code, err = _run(base + ["--stage2", "2"], capsys)
+    assert code == 2 and "holds a finished fit" in err
+    assert (fit / "scene.xml").read_bytes() == fitted
+    (fit / "notes.txt").write_text("mine")
+    code = main(base + ["--stage2", "3", "--resume"])
+    out = capsys.readouterr().out
+    assert code == 0 and "resuming from %s" % (fit / "checkpoints" / "latest.npz") in out
+    assert json.loads((fit / "metrics.json").read_text())["config"]["stage2_iterations"] == 3
+    assert _run(base + ["--stage2", "2", "--overwrite"], capsys)[0] == 0
+    assert (fit / "notes.txt").read_text() == "mine"
+    # another scene's checkpoint is refused, naming the fit folder's file
+    before = _snapshot(fit)
+    code, err = _run(["fit", str(_other_import(street, tmp_path)), "-o", str(fit), "--stage1", "2",
+                      "--stage2", "2", "--width", "64", "--lidar-columns", "64", "--resume"], capsys)
+    assert code == 2 and "%s: checkpoint is of another fit" % (fit / "checkpoints" / "latest.npz") in err
+    assert _unchanged(before, fit) == []
+    assert list((tmp_path / "elsewhere").iterdir()) == [fit]
+    code, err = _run(["eval", str(fit), "--frames", "4", "--no-baseline", "--no-relight"], capsys)
+    assert code == 0, err
+    assert "mean" in json.loads((fit / "metrics.json").read_text())
+
+
+def _dead_pid() -> int:
+    import subprocess
+    import sys
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid
+
+
+def _killed_run(target, command, pid):
+    """What a run killed after writing a checkpoint leaves beside ``target``."""
+    out = outdir.prepare(target, command)
+    (out.path / "checkpoints").mkdir()
+    (out.path / "checkpoints" / "latest.npz").write_text("killed run")
+    marker = outdir.read_marker(out.path)
+    marker.pid = pid
+    (out.path / outdir.MARKER).write_text(marker.to_json())
+    return out.path
+
+
+def test_a_killed_fit_is_resumed_from_its_temporary_folder(tmp_path):
+    target = tmp_path / "fit"
+    staging = _killed_run(target, "fit", _dead_pid())
+    assert not target.exists()
+    # a new run says what was left; --resume continues from it
+    with pytest.warns(UserWarning, match="left by a run of 'mi-invrgbl fit' that was killed"):
+        outdir.prepare(target, "fit").discard()
+    with pytest.warns(UserWarning, match="continuing from .fit.partial"):
+        out = outdir.prepare(target, "fit", resume=True)
+    assert out.path == staging
+    assert (out.path / "checkpoints" / "latest.npz").read_text() == "killed run"
+    out.commit()
+    assert (target / "checkpoints" / "latest.npz").read_text() == "killed run"
+    assert [p.name for p in tmp_path.iterdir()] == ["fit"]
+
+
+def test_two_runs_never_write_one_folder(tmp_path):
+    target = tmp_path / "fit"
+    _killed_run(target, "fit", os.getppid())       # a live process
+    with pytest.raises(outdir.UserError, match="another 'mi-invrgbl fit' \\(process %d\\)"
+                       % os.getppid()):
+        outdir.prepare(target, "fit")

@@ -76,6 +76,9 @@ def test_import_reports_the_checked_trajectory(hidden, truth, tmp_path):
     assert odo["trajectory_length_m"] == pytest.approx(true_length, rel=0.03)
     assert odo["check_speed"] == "agrees" and odo["check_image_motion"] == "agrees"
     assert odo["check_scene_extent"] == "agrees"
+    # With the motion right, the parked car stays parked and the moving one moves.
+    moving = sorted(o["moving"] for o in report.objects)
+    assert moving == [False, True], report.objects
 
 
 def test_import_prints_the_length(hidden, tmp_path, capsys):

@@ -41,7 +41,8 @@ def _is_metrics_file(path) -> bool:
     from ..eval.inputs import read_json_dict
     data = read_json_dict(str(path))
     return data is not None and (data.get("format") == "mi-invrgbl-metrics/1"
-                                 or {"heldout_psnr", "selection", "config"} <= set(data))
+                                 or ("selection" in data
+                                     and bool({"wall_s", "heldout_psnr"} & set(data))))
 
 
 def run(args):

@@ -65,7 +65,8 @@ FLAGS = (
     ("--max-gaussians", "max_gaussians", "densification cap", {}),
     ("--checkpoint-every", "checkpoint_every", "iterations between checkpoints", {}),
     ("--eval-every", "eval_every", "iterations between held-out evaluations", {}),
-    ("--resume", "resume", "continue from DIR/fit/checkpoints/latest.npz", {}),
+    ("--resume", "resume", "continue the fit in the output folder from its "
+     "checkpoints/latest.npz", {}),
     ("--seed", "seed", "random seed", {}),
 )
 
@@ -143,7 +144,7 @@ def _carry_frames(scene, staging: Path, target: Path) -> None:
     (paths rewritten relative to it), so that ``eval`` finds the frames and
     their observations from the fit folder alone."""
     from ..scene.frames import Frames
-    if (target / "frames.json").is_file() or (target.parent / "frames.json").is_file():
+    if (target.parent / "frames.json").is_file():
         return
     try:
         frames = Frames.load(scene)
@@ -169,8 +170,13 @@ def run(args):
     config.output = str(out.path)
     t0 = time.time()
     try:
-        metrics = run_fit(args.scene, config, log=out.log)
+        # Before the fit: its outputs step loads the fitted scene with its frames.
         _carry_frames(args.scene, out.path, out.target)
+        metrics = run_fit(args.scene, config, log=out.log)
+    except UserError as exc:
+        out.discard()
+        # Name the output folder, not the temporary one the fit worked in.
+        raise UserError(str(exc).replace(str(out.path), str(out.target))) from None
     except BaseException:
         out.discard()
         raise

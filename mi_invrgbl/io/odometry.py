@@ -206,7 +206,7 @@ def _project(points_cam, K, W, H):
 
 
 def image_steps(images, scans, K, T_velo_to_cam, deltas, max_step: float = 4.0,
-                min_points: int = 30):
+                min_points: int = 30, max_points: int = 4000):
     """Per-frame sensor translation (metres) that the images support, or NaN.
 
     For frames ``k`` and ``k+1``, the points of sweep ``k+1`` are seen in
@@ -214,7 +214,7 @@ def image_steps(images, scans, K, T_velo_to_cam, deltas, max_step: float = 4.0,
     surfaces have the same colour in both only for the right motion. The
     candidates keep the odometry's rotation (``deltas[k]``, sweep ``k`` from
     sweep ``k+1``) and scale its direction of travel (forward, +x, when it
-    barely moves) from 0 to ``max_step`` metres; the length with the smallest
+    barely moves) from 0 to ``max_step`` metres in 0.1 m steps; the length with the smallest
     median colour difference is the images' step. The LiDAR's depth gives it
     a metric scale independent of the sweeps' registration.
     """
@@ -224,7 +224,7 @@ def image_steps(images, scans, K, T_velo_to_cam, deltas, max_step: float = 4.0,
     # Blur: few-sample renders and sensor noise would otherwise swamp the
     # colour differences that a wrong motion makes.
     sigma = float(np.clip(np.asarray(images[0]).shape[1] / 80.0, 1.0, 3.0))
-    candidates = np.linspace(0.0, max_step, int(round(max_step / 0.05)) + 1)
+    candidates = np.linspace(0.0, max_step, int(round(max_step / 0.1)) + 1)
     steps = np.full(max(len(images) - 1, 0), np.nan)
     for k in range(len(images) - 1):
         a = cv2.GaussianBlur(np.asarray(images[k], np.float64) / 255.0, (0, 0), sigma)
@@ -233,9 +233,13 @@ def image_steps(images, scans, K, T_velo_to_cam, deltas, max_step: float = 4.0,
         # The road's uniform colour says nothing about motion along it.
         pts = remove_ground(np.asarray(scans[k + 1], np.float64).reshape(-1, 3))
         uv_b, ok_b = _project(pts @ T[:3, :3].T + T[:3, 3], K, W, H)
-        pts, colour_b = pts[ok_b], _sample(b, uv_b[ok_b])
+        pts, colour_b, uv_b = pts[ok_b], _sample(b, uv_b[ok_b]), uv_b[ok_b]
         if len(pts) < min_points:
             continue
+        if len(pts) > max_points:
+            # A few thousand points decide as well as all of a 64-beam sweep's.
+            keep = np.random.default_rng(k).choice(len(pts), max_points, replace=False)
+            pts, colour_b, uv_b = pts[keep], colour_b[keep], uv_b[keep]
         D = np.asarray(deltas[k], np.float64)
         t = D[:3, 3]
         direction = t / np.linalg.norm(t) if np.linalg.norm(t) > 0.05 else np.array([1.0, 0, 0])
@@ -243,7 +247,7 @@ def image_steps(images, scans, K, T_velo_to_cam, deltas, max_step: float = 4.0,
         # Image blocks vote separately: a car driving ahead fills a few blocks
         # and pulls them towards its own relative motion, the street's static
         # sides hold the others.
-        u, v = uv_b[ok_b][:, 0], uv_b[ok_b][:, 1]
+        u, v = uv_b[:, 0], uv_b[:, 1]
         block = (np.minimum((u / W * BLOCKS[0]).astype(int), BLOCKS[0] - 1) * BLOCKS[1]
                  + np.minimum((v / H * BLOCKS[1]).astype(int), BLOCKS[1] - 1))
         errors = np.full((len(candidates), BLOCKS[0] * BLOCKS[1]), np.inf)
