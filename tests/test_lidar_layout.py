@@ -149,3 +149,13 @@ def test_import_finds_the_vlp32_layout(streets, tmp_path):
     frames = json.loads((tmp_path / "out" / "frames.json").read_text())
     assert frames["lidar"]["beams"] == 32
     assert np.allclose(frames["lidar"]["elevations_deg"], sensors.VLP32C_DEG, atol=1e-3)
+
+
+def test_cli_lidar_options_are_checked(tmp_path, capsys):
+    from mi_invrgbl.cli import main
+    assert main(["make-scene", "street", str(tmp_path / "o"), "--lidar", "hdl32"]) == 2
+    err = capsys.readouterr().err
+    assert "--lidar must be one of hdl64, vlp32, os128 or rays:FILE" in err and len(err.strip().splitlines()) == 1
+    assert main(["make-scene", "street", str(tmp_path / "o"), "--lidar", "rays:%s" % (tmp_path / "x.npy")]) == 2
+    assert "cannot read the ray list" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()

@@ -531,6 +531,15 @@ def scene_return_samples(scene, integrator, frames, positions, lidar_size=None):
             _, sensor = set_frame(scene, frames, k)
             if sensor is None:
                 continue
+            if frames.objects:
+                # Re-assign the objects' data through the scene so that its
+                # acceleration structure sees the move (Mitsuba 3.9.1).
+                params = mi.traverse(scene)
+                keys = [n + ".data" for n in frames.objects if n + ".data" in params.keys()]
+                for key in keys:
+                    params[key] = type(params[key])(np.array(params[key]))
+                if keys:
+                    params.update()
             img, names = read_exr(str(rec.lidar_scan))
             hit_obs = img[..., [n.lower() for n in names].index("hit")].ravel() > 0.5
             rays, beam, _, near = LidarReturnIntegrator.beam_rays(sensor)
