@@ -97,6 +97,7 @@ class ImportOptions:
     sun_irradiance: float = 0.0
     extend_walls: float = 10.0         # metres above the top beam's hits (0: off)
     triangulate: bool = True           # camera-only geometry (io/triangulate.py)
+    motion: bool = True                # moving objects from the LiDAR when unlabelled (io/motion.py)
     overwrite: bool = False
     verify: bool = True
 
@@ -288,6 +289,9 @@ def import_scene(data, out_xml, options: ImportOptions | None = None, log=print)
 
     src, state = steps.run("read", _read, data, opts, log)
     steps.run("odometry", _odometry, src, state, opts, log)
+    if opts.motion and src.labels is None and opts.dynamic != "none":
+        from .motion import import_step as motion_step, write_masks
+        steps.run("motion", motion_step, src, state, opts, log)
     steps.run("accumulate", _accumulate, src, state, opts, log)
     if opts.extend_walls > 0:
         steps.run("extend walls", _extend_walls, state, opts, log)
@@ -304,6 +308,8 @@ def import_scene(data, out_xml, options: ImportOptions | None = None, log=print)
         raise UserError(f"{parent}: cannot write here ({exc.strerror})") from None
     try:
         frames = steps.run("write", _write, src, state, opts, tmp, out_xml.name, data)
+        if "motion" in state:
+            steps.run("motion masks", write_masks, state, tmp)
         if opts.verify:
             steps.run("verify", _verify, tmp / out_xml.name)
         if out_dir.exists():

@@ -211,13 +211,18 @@ def _bilinear(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
 def triangulate_frames(load_image: Callable[[int], np.ndarray], cam_to_world: np.ndarray,
                        K: np.ndarray, training: Sequence[int],
                        options: TriangulationOptions | None = None,
-                       log=None) -> TriangulatedPoints:
+                       log=None, exclude: Callable[[int], np.ndarray] | None = None
+                       ) -> TriangulatedPoints:
     """Triangulate the surfaces seen by the frames ``training``.
 
     ``load_image(i)`` returns frame ``i``'s image as RGB (uint8, or float
     *linear* RGB in [0, 1]); it is called for the frames in ``training``
     only. ``cam_to_world`` (F, 4, 4) in OpenCV camera axes, ``K`` the
-    intrinsics of the images ``load_image`` returns.
+    intrinsics of the images ``load_image`` returns. ``exclude(i)``, when
+    given, returns a mask (any resolution of the same aspect, or None) of
+    pixels whose keypoints are not used: moving objects, whose tracks would
+    triangulate to the wrong depth along the epipolar lines of a camera
+    driving behind them.
     """
     from .kitti import srgb_to_linear
 
@@ -229,6 +234,13 @@ def triangulate_frames(load_image: Callable[[int], np.ndarray], cam_to_world: np
     for i in frames:
         img = np.asarray(load_image(i))
         xy, desc = detect(img, opts.max_features)
+        mask = exclude(i) if exclude is not None else None
+        if mask is not None and len(xy):
+            sx, sy = mask.shape[1] / img.shape[1], mask.shape[0] / img.shape[0]
+            mx = np.clip((xy[:, 0] * sx).astype(np.int64), 0, mask.shape[1] - 1)
+            my = np.clip((xy[:, 1] * sy).astype(np.int64), 0, mask.shape[0] - 1)
+            free = mask[my, mx] == 0
+            xy, desc = xy[free], desc[free]
         feats[i] = (xy, desc)
         if img.dtype == np.uint8:
             linear[i] = srgb_to_linear(img.astype(np.float32) / 255.0)
@@ -429,7 +441,13 @@ def import_step(src, state, opts, log, options: TriangulationOptions | None = No
     def load(i):
         return _read_image_uint8(drive.image_paths[positions[i]], (W0, H0))
 
-    pts = triangulate_frames(load, state["cam_poses"], drive.K, training, options, log=log)
+    exclude = None
+    if "motion" in state:
+        from .motion import image_masks
+        masks = image_masks(state, which="dynamic")
+        exclude = masks.__getitem__
+    pts = triangulate_frames(load, state["cam_poses"], drive.K, training, options, log=log,
+                             exclude=exclude)
     n_all = len(pts)
     pts = pts.subset(far_from(pts.points, state["bg"]["points"], options.lidar_clearance))
     bg = state["background"]
