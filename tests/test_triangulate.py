@@ -121,3 +121,20 @@ def test_excluded_pixels_give_no_keypoints(street):
                                  exclude=lambda i: half)
     assert len(pts) > 50
     assert (pts.points[:, 0] < 0).all()
+
+
+def test_dense_flow_points_on_the_facades(street):
+    poses, images = street
+    read = []
+
+    def load(i):
+        read.append(i)
+        return images[i]
+
+    training = [i for i in range(len(images)) if not tri.held_out(i)]
+    pts = tri.dense_frames(load, poses, K, training)
+    assert 4 not in read and 9 not in read
+    assert len(pts) > 2000
+    dist = np.min(np.abs(pts.points[:, :1] - np.array(WALLS)[None, :]), axis=1)
+    assert np.median(dist) < 0.05
+    assert np.percentile(dist, 90) < 0.3

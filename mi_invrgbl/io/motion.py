@@ -445,7 +445,11 @@ def detect_motion(scans, poses, opts: MotionOptions | None = None, log=None) -> 
         obj = None
         if ok:
             obj = _box(tr, n, opts.track_id_base + len(objects))
-            ok = obj.displacement_m >= opts.min_travel
+            h, w, l = obj.size_hwl
+            # A box grown past a vehicle's size by drifting registrations
+            # would pull static background into the node: mask it instead.
+            ok = (obj.displacement_m >= opts.min_travel and l <= MAX_LENGTH + 1.0
+                  and w <= MAX_WIDTH + 1.0 and h <= opts.max_height + 0.5)
         modelled.append(bool(ok))
         if ok:
             objects.append(obj)
