@@ -22,8 +22,15 @@ triangulation
     of every camera that saw it, at least ``min_depth``), reprojection error
     (largest over the views, at most ``max_reproj_px``) and parallax (largest
     angle between two viewing rays, at least ``min_parallax_deg``: a short
-    baseline leaves depth undetermined). Tracks on moving objects break the
-    epipolar or the reprojection test over three or more views.
+    baseline leaves depth undetermined). A vehicle driving ahead moves
+    along the epipolar lines of a camera following it and would pass these
+    tests at a wrong depth: keypoints on moving things found in the LiDAR
+    (:mod:`mi_invrgbl.io.motion`) are not used.
+dense points
+    Sparse tracks are few on a slowly driving car's trees and bridges, so
+    :func:`dense_frames` adds two-view points from optical flow (OpenCV DIS)
+    between training frames ``dense_baseline`` metres apart, with a
+    forward-backward and an epipolar check, deduplicated on a voxel grid.
 colour
     Mean linear RGB of the track's observations (bilinear).
 cameras only
@@ -40,8 +47,9 @@ loaded.
 API::
 
     pts = triangulate_frames(load_image, cam_to_world, K, training, options)
+    pts = concatenate([pts, dense_frames(load_image, cam_to_world, K, training)])
     pts = pts.subset(far_from(pts.points, lidar_points, clearance))
-    g = camera_gaussians(pts, K, image_scale)       # dict of Gaussian arrays
+    g = camera_gaussians(pts, K)                    # dict of Gaussian arrays
 """
 
 from __future__ import annotations
@@ -594,7 +602,7 @@ def import_step(src, state, opts, log, options: TriangulationOptions | None = No
     # The camera-only Gaussians take their place inside --max-points: the
     # same number of LiDAR Gaussians (drawn at random, seeded) make room.
     cap = min(len(pts), opts.max_points // 4)
-    if cap < len(pts):
+    if cap < len(pts):      # keep the farthest: nearer surfaces have LiDAR points around
         far_first = np.argsort(-pts.depth, kind="stable")[:cap]
         pts = pts.subset(np.sort(far_first))
     room = max(0, n_bg + len(pts) - opts.max_points)
