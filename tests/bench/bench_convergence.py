@@ -136,15 +136,27 @@ def calibrate(case, scene: Path, variant, iters, log) -> Calibration:
         if c.stage1 == iters:
             return c
     out = scene.parent / "fit_calibration"
-    run(cli(variant, "fit", scene, "-o", out, "--stage1", iters, "--stage2", iters), log)
-    fit = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").is_file() \
-        else None
-    if fit is None or "fit" not in fit:
-        # fit writes its times into metrics.json under "fit" (eval keeps them)
+
+    def times():
+        # fit writes its times at the top of metrics.json; eval moves them under "fit"
+        if not (out / "metrics.json").is_file():
+            return None
+        m = fit_metrics(out)
+        m = m.get("fit", m)
+        cfg = m.get("config", {})
+        if cfg.get("stage1_iterations") != iters or cfg.get("stage2_iterations") != iters:
+            return None
+        return m
+
+    fit = times()
+    if fit is None:
+        run(cli(variant, "fit", scene, "-o", out, "--stage1", iters, "--stage2", iters), log)
+        fit = times()
+    if fit is None or "times_s" not in fit:
         raise SystemExit(f"{out}: no metrics.json with the fit's times")
-    t = fit["fit"]["times_s"]
+    t = fit["times_s"]
     c = Calibration(iters, iters, float(t["stage 1"]), float(t["stage 2"]),
-                    float(fit["fit"]["wall_s"]) - float(t["stage 1"]) - float(t["stage 2"]))
+                    float(fit["wall_s"]) - float(t["stage 1"]) - float(t["stage 2"]))
     path.write_text(json.dumps(asdict(c), indent=1))
     return c
 
