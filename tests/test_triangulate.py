@@ -109,3 +109,32 @@ def test_lidar_covered_points_are_dropped_and_gaussians_are_bounded(street):
     assert np.median(g["normals"][:, 0]) > 0.9
     pixel = pts.depth[keep] / F
     assert np.all(g["scales"][:, 0] <= 6 * pixel + 1e-6)
+
+
+def test_excluded_pixels_give_no_keypoints(street):
+    """Masked pixels (moving objects) are not used: masking the right half of
+    every image leaves only the left facade."""
+    poses, images = street
+    half = np.zeros((H // 2, W // 2), np.uint8)          # a mask at half resolution
+    half[:, W // 4:] = 255
+    pts = tri.triangulate_frames(lambda i: images[i], poses, K, [0, 1, 2, 3],
+                                 exclude=lambda i: half)
+    assert len(pts) > 50
+    assert (pts.points[:, 0] < 0).all()
+
+
+def test_dense_flow_points_on_the_facades(street):
+    poses, images = street
+    read = []
+
+    def load(i):
+        read.append(i)
+        return images[i]
+
+    training = [i for i in range(len(images)) if not tri.held_out(i)]
+    pts = tri.dense_frames(load, poses, K, training)
+    assert 4 not in read and 9 not in read
+    assert len(pts) > 2000
+    dist = np.min(np.abs(pts.points[:, :1] - np.array(WALLS)[None, :]), axis=1)
+    assert np.median(dist) < 0.05
+    assert np.percentile(dist, 90) < 0.3

@@ -56,6 +56,9 @@ def add_parser(subparsers):
     p.add_argument("--no-triangulate", dest="triangulate", action="store_false",
                    help="no camera-only Gaussians from multi-view triangulation of the "
                         "training images (surfaces above the top beam and beyond range)")
+    p.add_argument("--no-motion", dest="motion", action="store_false",
+                   help="on drives without tracking labels, do not look for moving objects "
+                        "in the LiDAR sweeps (rigid nodes, or masks the fit leaves out)")
     p.add_argument("--extend-walls", type=float, default=d.extend_walls,
                    help="extend facades cut by the LiDAR's top beam upward by this many metres, "
                         "so the cameras' view above the LiDAR has Gaussians (default %(default)s; 0: off)")
@@ -77,6 +80,7 @@ def options_from_args(args):
         opacity=args.opacity, min_range=args.min_range, max_range=args.max_range,
         intensity=args.intensity, beams=args.beams, sky_order=args.sky_order,
         extend_walls=args.extend_walls, triangulate=args.triangulate,
+        motion=args.motion,
         check_odometry=args.check_odometry, overwrite=args.overwrite,
         verify=not args.no_verify)
 

@@ -100,6 +100,7 @@ class ImportOptions:
     sun_irradiance: float = 0.0
     extend_walls: float = 10.0         # metres above the top beam's hits (0: off)
     triangulate: bool = True           # camera-only geometry (io/triangulate.py)
+    motion: bool = True                # moving objects from the LiDAR when unlabelled (io/motion.py)
     overwrite: bool = False
     verify: bool = True
 
@@ -181,6 +182,8 @@ class ImportState:
     background: dict | None = None         # the background's Gaussian fields, by name
     # objects
     object_clouds: dict = field(default_factory=dict)   # object name -> its Gaussian fields
+    # motion (unlabelled drives): moving LiDAR points, tracks and masks (io/motion.py)
+    motion: object | None = None
 
 
 class _Steps:
@@ -295,6 +298,9 @@ def import_scene(data, out_xml, options: ImportOptions | None = None, log=print)
     try:
         src, state = steps.run("read", _read, data, opts, log)
         steps.run("odometry", _odometry, src, state, opts, log)
+        if opts.motion and src.labels is None and opts.dynamic != "none":
+            from .motion import import_step as motion_step
+            steps.run("motion", motion_step, src, state, opts, log)
         steps.run("accumulate", _accumulate, src, state, opts, log)
         if opts.extend_walls > 0:
             steps.run("extend walls", _extend_walls, state, opts, log)
@@ -305,6 +311,9 @@ def import_scene(data, out_xml, options: ImportOptions | None = None, log=print)
         steps.run("objects", _objects, state, opts, log)
         steps.run("colours", _colours, state, opts, log)
         frames = steps.run("write", _write, src, state, opts, out.path, out_xml.name, data)
+        if state.motion is not None:
+            from .motion import write_masks
+            steps.run("motion masks", write_masks, state, out.path)
         if opts.verify:
             steps.run("verify", _verify, out.path / out_xml.name)
         out.commit()

@@ -22,8 +22,15 @@ triangulation
     of every camera that saw it, at least ``min_depth``), reprojection error
     (largest over the views, at most ``max_reproj_px``) and parallax (largest
     angle between two viewing rays, at least ``min_parallax_deg``: a short
-    baseline leaves depth undetermined). Tracks on moving objects break the
-    epipolar or the reprojection test over three or more views.
+    baseline leaves depth undetermined). A vehicle driving ahead moves
+    along the epipolar lines of a camera following it and would pass these
+    tests at a wrong depth: keypoints on moving things found in the LiDAR
+    (:mod:`mi_invrgbl.io.motion`) are not used.
+dense points
+    Sparse tracks are few on a slowly driving car's trees and bridges, so
+    :func:`dense_frames` adds two-view points from optical flow (OpenCV DIS)
+    between training frames ``dense_baseline`` metres apart, with a
+    forward-backward and an epipolar check, deduplicated on a voxel grid.
 colour
     Mean linear RGB of the track's observations (bilinear).
 cameras only
@@ -40,8 +47,9 @@ loaded.
 API::
 
     pts = triangulate_frames(load_image, cam_to_world, K, training, options)
+    pts = concatenate([pts, dense_frames(load_image, cam_to_world, K, training)])
     pts = pts.subset(far_from(pts.points, lidar_points, clearance))
-    g = camera_gaussians(pts, K, image_scale)       # dict of Gaussian arrays
+    g = camera_gaussians(pts, K)                    # dict of Gaussian arrays
 """
 
 from __future__ import annotations
@@ -66,6 +74,12 @@ class TriangulationOptions:
     min_depth: float = 1.0          # metres in front of every camera
     max_depth: float = 300.0
     lidar_clearance: float = 0.5    # metres: nearer a LiDAR point -> the LiDAR has it
+    dense: bool = True              # also dense two-view points from optical flow
+    dense_baseline: float = 0.5     # metres: partner = first later training frame this far
+    dense_stride: int = 4           # pixels between flow samples
+    dense_fb_px: float = 0.5        # forward-backward flow consistency
+    dense_min_parallax_deg: float = 1.0
+    dense_voxel: float = 0.15       # metres: one dense point per voxel
 
 
 @dataclass
@@ -211,13 +225,18 @@ def _bilinear(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
 def triangulate_frames(load_image: Callable[[int], np.ndarray], cam_to_world: np.ndarray,
                        K: np.ndarray, training: Sequence[int],
                        options: TriangulationOptions | None = None,
-                       log=None) -> TriangulatedPoints:
+                       log=None, exclude: Callable[[int], np.ndarray] | None = None
+                       ) -> TriangulatedPoints:
     """Triangulate the surfaces seen by the frames ``training``.
 
     ``load_image(i)`` returns frame ``i``'s image as RGB (uint8, or float
     *linear* RGB in [0, 1]); it is called for the frames in ``training``
     only. ``cam_to_world`` (F, 4, 4) in OpenCV camera axes, ``K`` the
-    intrinsics of the images ``load_image`` returns.
+    intrinsics of the images ``load_image`` returns. ``exclude(i)``, when
+    given, returns a mask (any resolution of the same aspect, or None) of
+    pixels whose keypoints are not used: moving objects, whose tracks would
+    triangulate to the wrong depth along the epipolar lines of a camera
+    driving behind them.
     """
     from .kitti import srgb_to_linear
 
@@ -229,6 +248,13 @@ def triangulate_frames(load_image: Callable[[int], np.ndarray], cam_to_world: np
     for i in frames:
         img = np.asarray(load_image(i))
         xy, desc = detect(img, opts.max_features)
+        mask = exclude(i) if exclude is not None else None
+        if mask is not None and len(xy):
+            sx, sy = mask.shape[1] / img.shape[1], mask.shape[0] / img.shape[0]
+            mx = np.clip((xy[:, 0] * sx).astype(np.int64), 0, mask.shape[1] - 1)
+            my = np.clip((xy[:, 1] * sy).astype(np.int64), 0, mask.shape[0] - 1)
+            free = mask[my, mx] == 0
+            xy, desc = xy[free], desc[free]
         feats[i] = (xy, desc)
         if img.dtype == np.uint8:
             linear[i] = srgb_to_linear(img.astype(np.float32) / 255.0)
@@ -345,6 +371,130 @@ def triangulate_frames(load_image: Callable[[int], np.ndarray], cam_to_world: np
     return res
 
 
+def dense_frames(load_image: Callable[[int], np.ndarray], cam_to_world: np.ndarray,
+                 K: np.ndarray, training: Sequence[int],
+                 options: TriangulationOptions | None = None, log=None,
+                 exclude: Callable[[int], np.ndarray] | None = None) -> TriangulatedPoints:
+    """Dense two-view points: optical flow (OpenCV DIS) from each training
+    frame to the first later training frame at least ``dense_baseline``
+    metres away (longer baselines break the flow), on a grid of
+    ``dense_stride`` pixels. A pixel is kept when the backward flow returns
+    within ``dense_fb_px``, the flow's end lies within ``epipolar_px`` of the
+    known epipolar line, and the DLT point passes the cheirality, depth and
+    parallax tests of :func:`triangulate_frames`. Sparse tracks are few on a
+    slowly driving car's textured trees and bridges; the flow sees all of
+    them. Same arguments as :func:`triangulate_frames`."""
+    import cv2
+    from .kitti import srgb_to_linear
+
+    opts = options or TriangulationOptions()
+    frames = [int(i) for i in sorted(set(training))]
+    K = np.asarray(K, np.float64)
+    Kinv = np.linalg.inv(K)
+    w2c_all = np.linalg.inv(cam_to_world)
+    centres = cam_to_world[:, :3, 3]
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    gray, linear = {}, {}
+
+    def get(i):
+        if i not in gray:
+            img = np.asarray(load_image(i))
+            u8 = img if img.dtype == np.uint8 else \
+                np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
+            gray[i] = cv2.cvtColor(u8, cv2.COLOR_RGB2GRAY)
+            linear[i] = srgb_to_linear(img.astype(np.float32) / 255.0) if img.dtype == np.uint8 \
+                else img.astype(np.float32)
+        return gray[i]
+
+    out = {k: [] for k in ("points", "colours", "first", "reproj", "parallax", "vdir", "depth")}
+    n_cand = 0
+    pairs = []
+    for pos, a in enumerate(frames):
+        later = [b for b in frames[pos + 1:]
+                 if np.linalg.norm(centres[b] - centres[a]) >= opts.dense_baseline]
+        if later:
+            pairs.append((a, later[0]))
+    for a, b in pairs:
+        ga, gb = get(a), get(b)
+        fwd = dis.calc(ga, gb, None)
+        bwd = dis.calc(gb, ga, None)
+        H, W = ga.shape
+        ys, xs = np.mgrid[opts.dense_stride // 2:H:opts.dense_stride,
+                          opts.dense_stride // 2:W:opts.dense_stride]
+        xa = np.stack([xs.ravel(), ys.ravel()], 1).astype(np.float64)
+        if exclude is not None:
+            mask = exclude(a)
+            if mask is not None:
+                mx = np.clip((xa[:, 0] * mask.shape[1] / W).astype(np.int64), 0, mask.shape[1] - 1)
+                my = np.clip((xa[:, 1] * mask.shape[0] / H).astype(np.int64), 0, mask.shape[0] - 1)
+                xa = xa[mask[my, mx] == 0]
+        n_cand += len(xa)
+        xb = xa + fwd[xa[:, 1].astype(np.int64), xa[:, 0].astype(np.int64)]
+        inside = (xb[:, 0] >= 0) & (xb[:, 0] <= W - 1) & (xb[:, 1] >= 0) & (xb[:, 1] <= H - 1)
+        xa, xb = xa[inside], xb[inside]
+        back = _bilinear(bwd, xb)
+        fb = np.linalg.norm(xb + back - xa, axis=1)
+        F = fundamental(K, cam_to_world[a], cam_to_world[b])
+        ok = (fb <= opts.dense_fb_px) & (sampson_px(F, xa, xb) <= opts.epipolar_px)
+        xa, xb = xa[ok], xb[ok]
+        if not len(xa):
+            continue
+        xy = np.stack([xa, xb], 1)                                   # (N, 2, 2)
+        h = np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], axis=2) @ Kinv.T
+        fr = np.array([a, b])
+        X = triangulate_dlt(h[:, :, :2] / h[:, :, 2:3], np.broadcast_to(w2c_all[fr], (len(xa), 2, 4, 4)))
+        pc = np.einsum("vij,nj->nvi", w2c_all[fr][:, :3, :3], X) + w2c_all[fr][None, :, :3, 3]
+        z = pc[:, :, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = K[0, 0] * pc[:, :, 0] / z + K[0, 2]
+            v = K[1, 1] * pc[:, :, 1] / z + K[1, 2]
+        err = np.sqrt((u - xy[:, :, 0]) ** 2 + (v - xy[:, :, 1]) ** 2)
+        err = np.where(np.isfinite(err), err, np.inf).max(axis=1)
+        rays = centres[fr][None] - X[:, None, :]
+        dist = np.linalg.norm(rays, axis=2)
+        rays = rays / np.maximum(dist[:, :, None], 1e-12)
+        parallax = np.degrees(np.arccos(np.clip(np.sum(rays[:, 0] * rays[:, 1], axis=1), -1, 1)))
+        keep = ((z.min(axis=1) >= opts.min_depth) & (dist.min(axis=1) <= opts.max_depth)
+                & (err <= opts.max_reproj_px) & (parallax >= opts.dense_min_parallax_deg)
+                & np.all(np.isfinite(X), axis=1))
+        if not keep.any():
+            continue
+        col = 0.5 * (_bilinear(linear[a], xa[keep]) + _bilinear(linear[b], xb[keep]))
+        vdir = rays[keep].mean(axis=1)
+        vdir /= np.maximum(np.linalg.norm(vdir, axis=1, keepdims=True), 1e-12)
+        out["points"].append(X[keep])
+        out["colours"].append(col)
+        out["first"].append(np.full(int(keep.sum()), a))
+        out["reproj"].append(err[keep])
+        out["parallax"].append(parallax[keep])
+        out["vdir"].append(vdir)
+        out["depth"].append(dist[keep].min(axis=1))
+
+    def cat(key, shape):
+        return np.concatenate(out[key]) if out[key] else np.zeros(shape)
+
+    n = sum(len(p) for p in out["points"])
+    res = TriangulatedPoints(cat("points", (0, 3)), np.clip(cat("colours", (0, 3)), 0, 1),
+                             np.full(n, 2, np.int64), cat("first", (0,)).astype(np.int64),
+                             cat("reproj", (0,)), cat("parallax", (0,)), cat("vdir", (0, 3)),
+                             cat("depth", (0,)), frames_used=sorted(gray))
+    res.stats = {"flow_pixels": int(n_cand), "points": n}
+    if log is not None:
+        log("[triangulate] dense flow: %d pixels of %d frame pairs -> %d points"
+            % (n_cand, len(pairs), n))
+    return res
+
+
+def concatenate(parts) -> TriangulatedPoints:
+    """One :class:`TriangulatedPoints` from several."""
+    parts = list(parts)
+    cat = lambda key: np.concatenate([getattr(p, key) for p in parts])  # noqa: E731
+    return TriangulatedPoints(cat("points"), cat("colours"), cat("views"), cat("first_frame"),
+                              cat("reproj_px"), cat("parallax_deg"), cat("view_dir"),
+                              cat("depth"), sorted({f for p in parts for f in p.frames_used}),
+                              {k: v for p in parts for k, v in p.stats.items()})
+
+
 # ----------------------------------------------------------------------------
 # Keep what the LiDAR lacks; Gaussians
 # ----------------------------------------------------------------------------
@@ -426,10 +576,25 @@ def import_step(src, state, opts, log, options: TriangulationOptions | None = No
         log("[import] fewer than two training frames: no triangulation")
         return
 
-    def load(i):
-        return read_image_uint8(drive.image_paths[positions[i]], (W0, H0))
+    cache = {}
 
-    pts = triangulate_frames(load, state.cam_poses, drive.K, training, options, log=log)
+    def load(i):
+        if i not in cache:
+            cache[i] = read_image_uint8(drive.image_paths[positions[i]], (W0, H0))
+        return cache[i]
+
+    exclude = None
+    if state.motion is not None:
+        from .motion import image_masks
+        masks = image_masks(state, which="dynamic")
+        exclude = masks.__getitem__
+    pts = triangulate_frames(load, state.cam_poses, drive.K, training, options, log=log,
+                             exclude=exclude)
+    if options.dense:
+        dense = dense_frames(load, state.cam_poses, drive.K, training, options, log=log,
+                             exclude=exclude)
+        first, _ = ig.voxel_dedupe(dense.points, options.dense_voxel)
+        pts = concatenate([pts, dense.subset(np.sort(first))])
     n_all = len(pts)
     pts = pts.subset(far_from(pts.points, state.bg.points, options.lidar_clearance))
     bg = state.background
@@ -437,7 +602,7 @@ def import_step(src, state, opts, log, options: TriangulationOptions | None = No
     # The camera-only Gaussians take their place inside --max-points: the
     # same number of LiDAR Gaussians (drawn at random, seeded) make room.
     cap = min(len(pts), opts.max_points // 4)
-    if cap < len(pts):
+    if cap < len(pts):      # keep the farthest: nearer surfaces have LiDAR points around
         far_first = np.argsort(-pts.depth, kind="stable")[:cap]
         pts = pts.subset(np.sort(far_first))
     room = max(0, n_bg + len(pts) - opts.max_points)

@@ -1,0 +1,345 @@
+"""Quality against compute: fits at increasing time budgets, one row each.
+
+Run from the repository root::
+
+    python tests/bench/bench_convergence.py                       # street + KITTI, 2 8 30 60 min
+    python tests/bench/bench_convergence.py --budgets 2 --cases street
+    python tests/bench/bench_convergence.py --variant cuda_ad_rgb --work out/bench_gpu
+
+For each case (``street``: the seeded synthetic street of ``make-scene
+street``, imported with ``--max-points 60000``; ``kitti``: the KITTI raw
+excerpt imported with ``--image-scale 0.25 --max-points 60000``) the bench
+imports once, then for every budget runs a real ``mi-invrgbl fit`` and
+``mi-invrgbl eval`` on the held-out frames and prints one row: held-out PSNR
+and SSIM, albedo RMSE, normal error, relighting PSNR (street only: it has
+ground truth), LiDAR intensity RMSE of the fit and of the nearest-neighbour
+baseline, the fit's peak memory and its wall time. The rows go to
+``WORK/convergence.md`` and ``WORK/convergence.json``, and a plot of error
+against wall time to ``WORK/convergence.png`` (drawn with OpenCV).
+
+Budgets. When ``fit`` has ``--budget MINUTES`` the bench passes it on.
+Otherwise it maps a budget to iterations with a calibration fit per case
+(``--calibration`` iterations per stage, its times kept in
+``WORK/CASE/calibration.json``): the fixed cost (loading, selections,
+caching, outputs) is the calibration's wall time less its two stages, and
+the remaining budget is split evenly in time between the stages at the
+calibration's seconds per iteration. A budget below the fixed cost gets
+``--min-iterations`` per stage and is marked ``over`` in the table: the row
+then shows the cheapest fit, not one that met the budget.
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass, asdict
+import json
+import math
+import os
+from pathlib import Path
+import subprocess
+import sys
+import time
+
+ROOT = Path(__file__).resolve().parents[2]
+KITTI = ROOT.parent / "shared" / "data" / "kitti-raw-excerpt"
+
+CASES = {
+    "street": dict(import_args=["--max-points", "60000"]),
+    "kitti": dict(import_args=["--image-scale", "0.25", "--max-points", "60000"]),
+}
+
+
+@dataclass
+class Row:
+    case: str
+    budget_min: float
+    stage1: int
+    stage2: int
+    over_budget: bool
+    psnr: float | None = None
+    ssim: float | None = None
+    albedo_rmse: float | None = None
+    normal_deg: float | None = None
+    relight_psnr: float | None = None
+    intensity_rmse: float | None = None
+    nn_intensity_rmse: float | None = None
+    peak_mb: float | None = None
+    wall_s: float | None = None
+
+
+def cli(variant, *args):
+    return [sys.executable, "-m", "mi_invrgbl_main", "--variant", variant, *map(str, args)]
+
+
+def run(cmd, log):
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    with open(log, "a") as f:
+        f.write("$ " + " ".join(cmd) + "\n")
+        f.flush()
+        t = time.perf_counter()
+        proc = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT, env=env, cwd=ROOT)
+        f.write("# exit %d after %.1f s\n" % (proc.returncode, time.perf_counter() - t))
+    if proc.returncode != 0:
+        raise SystemExit("failed (exit %d): %s; see %s" % (proc.returncode, " ".join(cmd), log))
+
+
+def has_budget_option(variant) -> bool:
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    out = subprocess.run(cli(variant, "fit", "--help"), capture_output=True, text=True,
+                         env=env, cwd=ROOT)
+    return "--budget" in out.stdout
+
+
+def prepare(case, work: Path, variant, log) -> Path:
+    """Import the case once; returns its scene.xml."""
+    scene = work / case / "scene.xml"
+    if scene.is_file():
+        return scene
+    if case == "street":
+        data = work / "street_data"
+        if not (data / "gt").is_dir():
+            run(cli(variant, "make-scene", "street", data), log)
+    else:
+        data = KITTI
+        if not data.is_dir():
+            raise SystemExit(f"{data}: KITTI excerpt not found (skip it with --cases street)")
+    run(cli(variant, "import", data, "-o", scene, *CASES[case]["import_args"]), log)
+    return scene
+
+
+def fit_metrics(out: Path) -> dict:
+    with open(out / "metrics.json") as f:
+        return json.load(f)
+
+
+@dataclass
+class Calibration:
+    stage1: int
+    stage2: int
+    stage1_s: float
+    stage2_s: float
+    fixed_s: float
+
+    def iterations(self, budget_s, minimum):
+        """Stage iterations that fill ``budget_s``; (n1, n2, over budget)."""
+        left = budget_s - self.fixed_s
+        n1 = int(0.5 * left / (self.stage1_s / self.stage1)) if left > 0 else 0
+        n2 = int(0.5 * left / (self.stage2_s / self.stage2)) if left > 0 else 0
+        over = n1 < minimum or n2 < minimum
+        return max(n1, minimum), max(n2, minimum), over
+
+
+def calibrate(case, scene: Path, variant, iters, log) -> Calibration:
+    path = scene.parent / "calibration.json"
+    if path.is_file():
+        c = Calibration(**json.loads(path.read_text()))
+        if c.stage1 == iters:
+            return c
+    out = scene.parent / "fit_calibration"
+
+    def times():
+        # fit writes its times at the top of metrics.json; eval moves them under "fit"
+        if not (out / "metrics.json").is_file():
+            return None
+        m = fit_metrics(out)
+        m = m.get("fit", m)
+        cfg = m.get("config", {})
+        if cfg.get("stage1_iterations") != iters or cfg.get("stage2_iterations") != iters:
+            return None
+        return m
+
+    fit = times()
+    if fit is None:
+        run(cli(variant, "fit", scene, "-o", out, "--stage1", iters, "--stage2", iters), log)
+        fit = times()
+    if fit is None or "times_s" not in fit:
+        raise SystemExit(f"{out}: no metrics.json with the fit's times")
+    t = fit["times_s"]
+    c = Calibration(iters, iters, float(t["stage 1"]), float(t["stage 2"]),
+                    float(fit["wall_s"]) - float(t["stage 1"]) - float(t["stage 2"]))
+    path.write_text(json.dumps(asdict(c), indent=1))
+    return c
+
+
+def fit_budget(case, scene: Path, budget, variant, args, cal, log) -> Row:
+    out = scene.parent / ("fit_%gmin" % budget)
+    if args.native_budget:
+        n1 = n2 = None
+        over = False
+        cmd = cli(variant, "fit", scene, "-o", out, "--budget", budget)
+    else:
+        n1, n2, over = cal.iterations(60.0 * budget, args.min_iterations)
+        cmd = cli(variant, "fit", scene, "-o", out, "--stage1", n1, "--stage2", n2)
+    if not (args.reuse and (out / "metrics.json").is_file()
+            and "mean" in fit_metrics(out)):
+        run(cmd, log)
+        run(cli(variant, "eval", out), log)
+    m = fit_metrics(out)
+    mean, fit = m.get("mean", {}), m.get("fit", {})
+    if n1 is None:
+        cfg = fit.get("config", {})
+        n1, n2 = cfg.get("stage1_iterations"), cfg.get("stage2_iterations")
+    wall = fit.get("wall_s")
+    return Row(case, budget, n1, n2, over, mean.get("psnr"), mean.get("ssim"),
+               mean.get("albedo_rmse"), mean.get("normal_angle_deg"), mean.get("relight_psnr"),
+               mean.get("lidar_intensity_rmse"), mean.get("baseline_intensity_rmse"),
+               fit.get("peak_rss_mb"), wall)
+
+
+COLUMNS = [("case", "case", "%s"), ("budget_min", "budget [min]", "%g"),
+           ("stage1", "stage 1 it", "%d"), ("stage2", "stage 2 it", "%d"),
+           ("psnr", "PSNR [dB]", "%.2f"), ("ssim", "SSIM", "%.3f"),
+           ("albedo_rmse", "albedo RMSE", "%.3f"), ("normal_deg", "normal err [deg]", "%.1f"),
+           ("relight_psnr", "relight PSNR [dB]", "%.2f"),
+           ("intensity_rmse", "intensity RMSE", "%.4f"),
+           ("nn_intensity_rmse", "NN intensity RMSE", "%.4f"),
+           ("peak_mb", "peak mem [MB]", "%.0f"), ("wall_s", "wall [s]", "%.0f")]
+
+
+def table(rows) -> str:
+    lines = ["| " + " | ".join(c[1] for c in COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    for r in rows:
+        cells = []
+        for key, _, fmt in COLUMNS:
+            v = getattr(r, key)
+            if v is None or (isinstance(v, float) and math.isnan(v)):
+                cells.append("-")
+            else:
+                cells.append(fmt % v + (" (over)" if key == "budget_min" and r.over_budget else ""))
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------
+# The plot (OpenCV drawing: matplotlib is not a dependency)
+# ----------------------------------------------------------------------------
+
+COLOURS = {"street": (200, 90, 20), "kitti": (30, 120, 230)}      # BGR
+
+
+def _panel(img, x0, y0, w, h, series, title, ylabel, xmax):
+    """Axes at (x0, y0) of size w x h; ``series``: (label, colour, [(x, y)], dashed)."""
+    import cv2
+
+    ys = [y for _, _, pts, _ in series for _, y in pts if y is not None]
+    if not ys:
+        return
+    lo, hi = min(ys), max(ys)
+    pad = 0.1 * (hi - lo) if hi > lo else max(abs(hi) * 0.1, 0.1)
+    lo, hi = lo - pad, hi + pad
+
+    def px(x, y):
+        return (int(x0 + w * x / xmax), int(y0 + h - h * (y - lo) / (hi - lo)))
+
+    cv2.rectangle(img, (x0, y0), (x0 + w, y0 + h), (0, 0, 0), 1)
+    for k in range(5):
+        y = lo + (hi - lo) * k / 4
+        p = px(0, y)
+        cv2.line(img, (x0 - 4, p[1]), (x0, p[1]), (0, 0, 0), 1)
+        cv2.putText(img, "%.3g" % y, (x0 - 58, p[1] + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+                    (0, 0, 0), 1, cv2.LINE_AA)
+        x = xmax * k / 4
+        q = px(x, lo)
+        cv2.line(img, (q[0], y0 + h), (q[0], y0 + h + 4), (0, 0, 0), 1)
+        cv2.putText(img, "%.3g" % x, (q[0] - 10, y0 + h + 18), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+                    (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(img, title, (x0, y0 - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1,
+                cv2.LINE_AA)
+    cv2.putText(img, ylabel, (x0 + 4, y0 + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (60, 60, 60), 1,
+                cv2.LINE_AA)
+    cv2.putText(img, "fit wall time [min]", (x0 + w // 2 - 60, y0 + h + 36),
+                cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    for k, (label, colour, pts, dashed) in enumerate(series):
+        pts = [(x, y) for x, y in pts if y is not None and x is not None]
+        for a, b in zip(pts[:-1], pts[1:]):
+            if dashed:
+                n = 12
+                for s in range(0, n, 2):
+                    pa = px(a[0] + (b[0] - a[0]) * s / n, a[1] + (b[1] - a[1]) * s / n)
+                    pb = px(a[0] + (b[0] - a[0]) * (s + 1) / n, a[1] + (b[1] - a[1]) * (s + 1) / n)
+                    cv2.line(img, pa, pb, colour, 2, cv2.LINE_AA)
+            else:
+                cv2.line(img, px(*a), px(*b), colour, 2, cv2.LINE_AA)
+        for p in pts:
+            cv2.circle(img, px(*p), 4, colour, -1, cv2.LINE_AA)
+        cv2.putText(img, label, (x0 + w - 150, y0 + 18 + 16 * k), cv2.FONT_HERSHEY_SIMPLEX,
+                    0.42, colour, 1, cv2.LINE_AA)
+
+
+def plot(rows, path: Path):
+    import cv2
+    import numpy as np
+
+    img = np.full((380, 1180, 3), 255, np.uint8)
+    xmax = max([r.wall_s / 60 for r in rows if r.wall_s] + [1.0]) * 1.1
+    psnr, intensity, materials = [], [], []
+    for case in CASES:
+        rs = sorted((r for r in rows if r.case == case and r.wall_s), key=lambda r: r.wall_s)
+        if not rs:
+            continue
+        c = COLOURS[case]
+        psnr.append((case, c, [(r.wall_s / 60, r.psnr) for r in rs], False))
+        intensity.append((case, c, [(r.wall_s / 60, r.intensity_rmse) for r in rs], False))
+        intensity.append((case + " NN", c, [(r.wall_s / 60, r.nn_intensity_rmse) for r in rs], True))
+        if any(r.albedo_rmse is not None for r in rs):
+            materials.append(("albedo RMSE", (20, 150, 20),
+                              [(r.wall_s / 60, r.albedo_rmse) for r in rs], False))
+            materials.append(("normal err / 100 deg", (120, 20, 160),
+                              [(r.wall_s / 60, None if r.normal_deg is None else r.normal_deg / 100)
+                               for r in rs], False))
+    _panel(img, 70, 40, 300, 270, psnr, "held-out PSNR", "dB", xmax)
+    _panel(img, 460, 40, 300, 270, intensity, "LiDAR intensity RMSE", "RMSE", xmax)
+    _panel(img, 850, 40, 300, 270, materials, "street materials (lower is better)", "", xmax)
+    cv2.imwrite(str(path), img)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("budgets", nargs="*", type=float, metavar="MINUTES",
+                    help="fit budgets in minutes (default 2 8 30 60)")
+    ap.add_argument("--budgets", dest="budgets_opt", nargs="+", type=float, metavar="MINUTES")
+    ap.add_argument("--variant", default="llvm_ad_rgb")
+    ap.add_argument("--cases", default="street,kitti", help="comma-separated: street, kitti")
+    ap.add_argument("--work", default=str(ROOT / "out" / "bench_convergence"),
+                    help="folder for the scenes, fits, table and plot")
+    ap.add_argument("--calibration", type=int, default=20,
+                    help="iterations per stage of the calibration fit (default 20)")
+    ap.add_argument("--min-iterations", type=int, default=10)
+    ap.add_argument("--reuse", action="store_true",
+                    help="keep fits that already have an eval (re-print and re-plot)")
+    args = ap.parse_args(argv)
+    budgets = args.budgets_opt or args.budgets or [2, 8, 30, 60]
+    cases = [c.strip() for c in args.cases.split(",") if c.strip()]
+    for c in cases:
+        if c not in CASES:
+            raise SystemExit(f"--cases: unknown case '{c}' (street, kitti)")
+    work = Path(args.work).absolute()
+    work.mkdir(parents=True, exist_ok=True)
+    log = work / "bench.log"
+    args.native_budget = has_budget_option(args.variant)
+    print("budgets %s min; %s" % (" ".join("%g" % b for b in budgets),
+                                   "fit --budget" if args.native_budget else
+                                   "iterations from a calibration fit"), flush=True)
+    rows = []
+    for case in cases:
+        scene = prepare(case, work, args.variant, log)
+        cal = None
+        if not args.native_budget:
+            cal = calibrate(case, scene, args.variant, args.calibration, log)
+            print("%s: calibration %d+%d iterations: stage 1 %.2f s/it, stage 2 %.2f s/it, "
+                  "fixed %.0f s" % (case, cal.stage1, cal.stage2, cal.stage1_s / cal.stage1,
+                                    cal.stage2_s / cal.stage2, cal.fixed_s), flush=True)
+        for b in sorted(budgets):
+            rows.append(fit_budget(case, scene, b, args.variant, args, cal, log))
+            print(table(rows), flush=True)
+    text = table(rows)
+    (work / "convergence.md").write_text(text + "\n")
+    (work / "convergence.json").write_text(json.dumps([asdict(r) for r in rows], indent=1))
+    plot(rows, work / "convergence.png")
+    print(text)
+    print("written: %s, %s, %s" % (work / "convergence.md", work / "convergence.json",
+                                   work / "convergence.png"))
+
+
+if __name__ == "__main__":
+    main()
