@@ -24,11 +24,18 @@ def main(argv=None):
     import mitsuba as mi
     variant = _variant_from_argv(argv)
     if variant in mi.variants():
-        mi.set_variant(variant)
         try:
+            if variant.startswith("cuda_"):
+                import drjit as dr
+                if not dr.has_backend(dr.JitBackend.CUDA):
+                    raise RuntimeError(
+                        "variant '%s' needs an NVIDIA GPU with a working CUDA driver, and "
+                        "Dr.Jit found none on this machine; use -m llvm_ad_rgb (the CPU)" % variant)
+            mi.set_variant(variant)
             import mi_invrgbl  # noqa: F401  (registers the plugins)
-        except RuntimeError as exc:  # unusable libLLVM and friends: one line
-            print("mi-invrgbl: error: %s" % exc, file=sys.stderr)
+        except (ImportError, RuntimeError) as exc:  # no GPU, unusable libLLVM: one line
+            print("mi-invrgbl: error: -m %s: %s" % (variant, " ".join(str(exc).split())),
+                  file=sys.stderr)
             return 2
     else:
         print("mi-invrgbl: error: unknown Mitsuba variant '%s' (available: %s)"

@@ -47,18 +47,20 @@ def set_variant(name: str) -> None:
     if name not in mi.variants():
         raise UserError("unknown Mitsuba variant '%s' (available: %s)"
                         % (name, ", ".join(v for v in mi.variants() if "_ad_rgb" in v)))
-    mi.set_variant(name)
-    from .variant import check_variant, register_plugins, UnsupportedVariantError
+    from .variant import activate, check_variant, register_plugins, UnsupportedVariantError
     try:
+        activate(name)
         check_variant(name)
     except UnsupportedVariantError as exc:
-        raise UserError(str(exc)) from None
+        raise UserError("-m %s: %s" % (name, exc)) from None
     register_plugins()
 
 
 def main(argv=None) -> int:
+    from . import outdir
     parser = build_parser()
     args = parser.parse_args(argv)
+    outdir.command_line[:] = ["mi-invrgbl"] + list(sys.argv[1:] if argv is None else argv)
     try:
         set_variant(args.variant)
         return int(args.run(args) or 0)

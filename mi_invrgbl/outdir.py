@@ -227,6 +227,10 @@ class OutputFolder:
     def __repr__(self):
         return "OutputFolder(%s -> %s)" % (self.path, self.target)
 
+    def log(self, text: str) -> None:
+        """Print a progress line, naming the final folder rather than the temporary one."""
+        print(str(text).replace(str(self.path), str(self.target)))
+
     def discard(self) -> None:
         """Remove the temporary folder (only this object created it)."""
         if not self.done:
@@ -373,6 +377,35 @@ def prepare(target, command: str, inputs=(), overwrite: bool = False, resume: bo
             raise UserError("%s: cannot copy the results to resume from (%s)"
                             % (target, exc.strerror or exc)) from None
     return out
+
+
+def add_overwrite_option(parser) -> None:
+    """``--overwrite`` for a command's argument parser (one wording everywhere)."""
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace this command's earlier results in the output folder "
+                             "(only the files it wrote; anything else there is kept)")
+
+
+def staged(target, command: str, inputs=(), overwrite: bool = False, **kwargs):
+    """Context manager around :func:`prepare`: yields the :class:`OutputFolder`,
+    commits it when the block finishes, discards it when the block raises."""
+    return _Staged(prepare(target, command, inputs, overwrite, **kwargs))
+
+
+class _Staged:
+    def __init__(self, out: OutputFolder):
+        self.out = out
+
+    def __enter__(self) -> OutputFolder:
+        return self.out
+
+    def __exit__(self, kind, value, tb):
+        if kind is None:
+            if not self.out.done:
+                self.out.commit()
+        else:
+            self.out.discard()
+        return False
 
 
 def check_new_folder(target, command: str, inputs=(), what: str = "the output folder") -> Path:

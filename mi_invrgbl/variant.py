@@ -79,6 +79,22 @@ def check_variant(variant: str | None = None) -> str:
     return variant
 
 
+def activate(name: str) -> None:
+    """``mi.set_variant(name)``, as one clear :class:`UnsupportedVariantError`
+    where the machine cannot run it (no CUDA GPU for a ``cuda_`` variant)."""
+    if name.startswith("cuda_"):
+        import drjit as dr
+        if not dr.has_backend(dr.JitBackend.CUDA):
+            raise UnsupportedVariantError(
+                "variant '%s' needs an NVIDIA GPU with a working CUDA driver, and Dr.Jit "
+                "found none on this machine; use -m llvm_ad_rgb (the CPU)" % name)
+    try:
+        mi.set_variant(name)
+    except (ImportError, RuntimeError) as exc:
+        raise UnsupportedVariantError("Mitsuba cannot start variant '%s' here: %s"
+                                      % (name, " ".join(str(exc).split()))) from None
+
+
 _callback_installed = False
 
 

@@ -213,7 +213,7 @@ def test_object_at_its_pose_casts_and_receives_shadows(files, tmp_path, kind):
 
     # Cast: ground pixels whose sun ray the object blocks get darker.
     without = tmp_path / "without"
-    run(["relight", str(target), "-o", str(without), "--frames", "0"]
+    run(["relight", str(target), "-o", str(without), "--frames", "0", "--sky-scale", "1"]
         + (["--spp", "4"] if kind == "gaussians" else []))   # the same lighting, as shsun
     cast = (ids == "ground") & sun_blocked_by(scene, p, "inserted")
     with_obj, no_obj = lum(rgb(sun_out / "frame_0000.exr")), lum(rgb(without / "frame_0000.exr"))

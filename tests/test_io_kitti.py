@@ -485,11 +485,24 @@ def test_frame_count_mismatch(tmp_path):
 
 
 def test_calibration_puts_no_point_in_image(tmp_path):
-    # A flipped rotation puts every point behind the camera.
-    drive = make_raw_drive(tmp_path, R=-R_VELO_TO_CAM)
+    # Turned around the camera's y axis: a rotation, but every point is behind the camera.
+    drive = make_raw_drive(tmp_path, R=np.diag([-1.0, 1.0, -1.0]) @ R_VELO_TO_CAM)
     with pytest.raises(UserError, match="puts none of the 500 LiDAR points"):
         kitti.read_kitti_raw(drive)
     assert len(kitti.read_kitti_raw(drive, check=False)) == 3
+
+
+@pytest.mark.parametrize("R,message", [
+    (np.zeros((3, 3)), r"calib_velo_to_cam.txt: entry 'R' is not a rotation \(determinant 0, singular\)"),
+    (-R_VELO_TO_CAM, r"calib_velo_to_cam.txt: entry 'R' is not a rotation \(determinant -1\)"),
+    (2 * R_VELO_TO_CAM, r"calib_velo_to_cam.txt: entry 'R' is not a rotation"),
+    (np.full((3, 3), np.nan), r"calib_velo_to_cam.txt: entry 'R' holds a NaN"),
+])
+def test_velo_to_cam_must_be_rigid(tmp_path, R, message):
+    # Refused even without the projection check: a singular R made inv() fail later.
+    drive = make_raw_drive(tmp_path, R=R)
+    with pytest.raises(UserError, match=message):
+        kitti.read_kitti_raw(drive, check=False)
 
 
 def test_bad_bin_size(tmp_path):
@@ -531,3 +544,25 @@ def test_intensity_normalisation():
     np.testing.assert_allclose(velodyne.normalize_intensity([0, 2000], 1 / 4000), [0, 0.5])
     with pytest.raises(UserError, match="intensity_scale"):
         velodyne.normalize_intensity([0, 4000])
+
+
+def test_oxts_with_nan_is_refused(tmp_path):
+    recs = [[49.0, 8.4, 110.0, 0.0, 0.0, 0.0]] * 3
+    recs[1] = [49.0, float("nan"), 110.0, 0.0, 0.0, 0.0]
+    drive = make_raw_drive(tmp_path, n=3, oxts=recs)
+    with pytest.raises(UserError, match=r"0000000001.txt: position or orientation holds a NaN"):
+        kitti.read_kitti_raw(drive)
+
+
+def test_points_at_the_origin(tmp_path):
+    path = tmp_path / "0000000000.bin"
+    pts = np.ones((6, 3))
+    pts[:2] = 0.0
+    velodyne.write_velodyne(path, pts, np.zeros(6))
+    with pytest.warns(UserWarning, match="dropped 2 of 6 points at the sensor's origin"):
+        got, _ = velodyne.read_velodyne(path)
+    assert len(got) == 4
+    # every point there: a zero-filled file, not a sweep without returns
+    velodyne.write_velodyne(path, np.zeros((6, 3)), np.zeros(6))
+    with pytest.raises(UserError, match="0000000000.bin: all 6 points lie at the sensor's origin"):
+        velodyne.read_velodyne(path)

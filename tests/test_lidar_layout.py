@@ -17,18 +17,11 @@ FRAMES = 2
 
 
 def solid_state_rays(path):
-    """20 rows at non-uniform elevations, 120 rays each over +-50 degrees,
-    rows staggered in azimuth (not a grid); the beam in column 7."""
-    el = np.concatenate([np.linspace(-1, -6, 12), np.linspace(-7, -20, 8)])
-    rows = []
-    for k, e in enumerate(el):
-        az = np.radians(np.linspace(-50, 50, 120) + (k % 3) * 0.27)
-        er = np.radians(e)
-        d = np.stack([np.cos(er) * np.cos(az), np.cos(er) * np.sin(az),
-                      np.full_like(az, np.sin(er))], 1)
-        rows.append(np.hstack([np.zeros_like(d), d, np.full((len(az), 1), k)]))
-    np.save(path, np.concatenate(rows))
-    return el
+    """The generator's example solid-state pattern (20 non-uniform rows, not a grid)."""
+    rays = sensors.solid_state_rays()
+    np.save(path, rays)
+    el = np.arctan2(rays[:, 5], np.hypot(rays[:, 3], rays[:, 4]))
+    return np.degrees([np.median(el[rays[:, 6] == k]) for k in range(20)])
 
 
 @pytest.fixture(scope="module")

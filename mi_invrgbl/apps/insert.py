@@ -30,7 +30,7 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 
-from ..errors import UserError
+from ..errors import UserError, mitsuba_message
 from . import lighting_edit
 from ..scene import xml
 from ..scene.posing import place
@@ -110,8 +110,7 @@ def _mesh_bounds(shape_elem: ET.Element, what: str):
     try:
         scene = mi.load_string(ET.tostring(root, encoding="unicode"))
     except Exception as exc:  # Mitsuba reports loader errors as RuntimeError
-        lines = [l for l in str(exc).strip().splitlines() if l.strip()]
-        raise UserError("%s: cannot load the mesh: %s" % (what, lines[-1] if lines else exc)) from None
+        raise UserError("%s: cannot load the mesh: %s" % (what, mitsuba_message(exc))) from None
     shapes = list(scene.shapes())
     bbox = shapes[0].bbox() if shapes else None
     if bbox is None or not bbox.valid():

@@ -35,13 +35,39 @@ def add_parser(sub):
     p.set_defaults(run=run)
 
 
+def _is_metrics_file(path) -> bool:
+    """Whether ``path`` is a metrics.json that ``fit`` or ``eval`` wrote (folders
+    written before output markers existed)."""
+    from ..eval.inputs import read_json_dict
+    data = read_json_dict(str(path))
+    return data is not None and (data.get("format") == "mi-invrgbl-metrics/1"
+                                 or {"heldout_psnr", "selection", "config"} <= set(data))
+
+
 def run(args):
-    result = evaluate(args.scene, args.frames, spp=args.spp, samples=args.samples,
-                      lidar_model=args.lidar_model, baseline=not args.no_baseline,
-                      relight=not args.no_relight, baseline_max_points=args.baseline_max_points,
-                      save_renders=args.save_renders)
+    from .. import outdir
     scene_xml, _ = resolve_inputs(args.scene)
-    out = write_metrics(result, args.output or Path(scene_xml).parent / "metrics.json")
+    out = args.output or Path(scene_xml).parent / "metrics.json"
+    # Checked before the renders, not after them.
+    outdir.check_file(out, "eval", inputs=[scene_xml], recognise=_is_metrics_file,
+                      what="metrics file")
+    renders = None
+    if args.save_renders:
+        renders = outdir.prepare(args.save_renders, "eval", inputs=[scene_xml],
+                                 replace_own=True, what="--save-renders folder")
+    try:
+        result = evaluate(args.scene, args.frames, spp=args.spp, samples=args.samples,
+                          lidar_model=args.lidar_model, baseline=not args.no_baseline,
+                          relight=not args.no_relight, baseline_max_points=args.baseline_max_points,
+                          save_renders=str(renders.path) if renders else None)
+    except BaseException:
+        if renders:
+            renders.discard()
+        raise
+    if renders:
+        renders.commit()
+    out = write_metrics(result, out)
+    outdir.register_file(out)
     print(format_table(result["frames"], result["mean"]))
     print("[eval] wrote %s" % out)
     return 0

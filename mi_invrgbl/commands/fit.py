@@ -6,9 +6,14 @@ See :mod:`mi_invrgbl.fit.runner` for the order of work and
 
 from __future__ import annotations
 
+import os
 import time
+from pathlib import Path
 
 from ..errors import UserError
+
+#: Largest loss weight accepted: beyond it the float32 loss overflows.
+MAX_WEIGHT = 1e6
 
 
 #: The fit's options: (flag, FitConfig field, help, argparse options). Types
@@ -16,7 +21,8 @@ from ..errors import UserError
 #: source of defaults; ``invert`` marks a switch that turns a default-on
 #: field off.
 FLAGS = (
-    ("--output", "output", "output folder (default: <scene folder>/fit)", {"short": "-o"}),
+    ("--output", "output", "output folder (default: <scene folder>/fit); new, empty, or an "
+     "earlier fit's (with --resume or --overwrite)", {"short": "-o"}),
     ("--stage1", "stage1_iterations", "stage-1 (geometry) iterations", {}),
     ("--stage2", "stage2_iterations", "stage-2 (materials) iterations", {}),
     ("--width", "fit_width", "image width the fit works at", {}),
@@ -88,6 +94,8 @@ def add_parser(sub):
                 opts["metavar"] = metavar
             p.add_argument(*names, dest=name, type=type(default), default=default,
                            help=text + shown, **opts)
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an earlier fit in the output folder (only the files it wrote)")
     p.set_defaults(run=run)
 
 
@@ -99,6 +107,12 @@ def config_from_args(args):
         values["weights"] = LossWeights.parse(values["weights"])
     except ValueError as exc:
         raise UserError("--weights: %s" % exc) from None
+    for name, value in values["weights"].as_dict().items():
+        if not value <= MAX_WEIGHT:
+            raise UserError("--weights: %s=%g is too large (at most %g: the float32 loss "
+                            "would overflow)" % (name, value, MAX_WEIGHT))
+    if args.resume and getattr(args, "overwrite", False):
+        raise UserError("--resume and --overwrite exclude each other")
     for flag, name, _, _ in FLAGS:
         if name in ("stage1_iterations", "stage2_iterations", "fit_width", "lidar_columns",
                     "batch_rays", "samples"):
@@ -112,13 +126,53 @@ def config_from_args(args):
     return FitConfig(**values)
 
 
+def output_folder(args) -> str:
+    """The fit's output folder: ``-o`` or ``fit/`` beside the scene."""
+    return args.output or os.path.join(os.path.dirname(os.path.abspath(args.scene)), "fit")
+
+
+def _carry_frames(scene, staging: Path, target: Path) -> None:
+    """A fit folder outside its import folder gets a copy of ``frames.json``
+    (paths rewritten relative to it), so that ``eval`` finds the frames and
+    their observations from the fit folder alone."""
+    from ..scene.frames import Frames
+    if (target / "frames.json").is_file() or (target.parent / "frames.json").is_file():
+        return
+    try:
+        frames = Frames.load(scene)
+    except UserError:
+        return
+    if frames.root != target.parent:
+        frames.save(staging / "frames.json")
+
+
 def run(args):
+    from .. import outdir
     from ..fit.runner import run_fit
+    config = config_from_args(args)
+    if not os.path.isfile(args.scene):
+        raise UserError("%s: scene file not found" % args.scene)
+    # Decided before any work: a fit must not run an hour and then fail to write.
+    out = outdir.prepare(output_folder(args), "fit", inputs=[args.scene],
+                         overwrite=args.overwrite, resume=args.resume)
+    if args.resume and not (out.path / "checkpoints" / "latest.npz").is_file():
+        out.discard()
+        raise UserError("%s: no checkpoint to resume from"
+                        % (out.target / "checkpoints" / "latest.npz"))
+    config.output = str(out.path)
     t0 = time.time()
-    metrics = run_fit(args.scene, config_from_args(args))
+    try:
+        metrics = run_fit(args.scene, config, log=out.log)
+        _carry_frames(args.scene, out.path, out.target)
+    except BaseException:
+        out.discard()
+        raise
+    out.commit(complete=not metrics["interrupted"])
     print("[fit] %s in %.0f s; held-out PSNR %s dB, LiDAR intensity RMSE %s; peak memory %.0f MB"
           % ("interrupted" if metrics["interrupted"] else "done", time.time() - t0,
              "%.2f" % metrics["heldout_psnr"] if metrics["heldout_psnr"] is not None else "n/a",
              "%.4f" % metrics["heldout_intensity_rmse"] if metrics["heldout_intensity_rmse"] is not None
              else "n/a", metrics["peak_rss_mb"]))
+    print("[fit] results in %s%s" % (out.target, "" if not metrics["interrupted"] else
+                                     " (continue with --resume)"))
     return 130 if metrics["interrupted"] else 0

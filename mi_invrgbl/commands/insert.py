@@ -9,6 +9,7 @@ and ``sequence.{mp4,gif}``. See docs/applications.md.
 
 from __future__ import annotations
 
+from .. import outdir
 from ..apps import insert, sequence
 from ..apps.frame_set import FrameSet
 from ..apps.pose_input import check_inside, parse_pose, read_trajectory
@@ -38,6 +39,7 @@ def add_parser(sub):
     m.add_argument("--roughness", type=float, default=0.5, help="roughness (default 0.5)")
     m.add_argument("--lidar-albedo", type=float, default=0.5, help="LiDAR albedo (default 0.5)")
     sequence.add_render_options(p)
+    outdir.add_overwrite_option(p)
     p.set_defaults(run=run)
 
 
@@ -53,17 +55,28 @@ def run(args):
     if switched:
         print("[insert] the scene's integrator cannot shade Gaussians: it now uses 'invrgbl'")
     sequence.apply_integrator_options(edited, args)
-    out_dir = sequence.output_dir(args, "insert")
-    scene, _ = sequence.write_and_load(edited, doc, out_dir, "insert",
-                                         defines=sequence.defines(args))
-    shape_id = obj.shape.get("id")
-    bounds = insert.scene_bounds_without(scene, shape_id)
-    for k, pose in enumerate(track):
-        check_inside(pose[:3, 3], bounds, "--pose" if args.pose else "--track pose %d" % k)
-    frames = FrameSet(args.scene, scene, args.frames)
-    hooks = [insert.TrackHook(shape_id, track, track[0])] if args.track else []
-    result = sequence.render_frames(scene, frames, out_dir, args.spp, hooks=hooks,
-                                    exposure=args.exposure, tag="insert")
+    target = sequence.output_dir(args, "insert")
+    with outdir.staged(target, "insert", inputs=[args.scene, _object_file(args.object),
+                                                 args.track], overwrite=args.overwrite) as out:
+        out_dir = str(out.path)
+        scene, _ = sequence.write_and_load(edited, doc, out_dir, "insert", log=out.log,
+                                           defines=sequence.defines(args))
+        shape_id = obj.shape.get("id")
+        bounds = insert.scene_bounds_without(scene, shape_id)
+        for k, pose in enumerate(track):
+            check_inside(pose[:3, 3], bounds, "--pose" if args.pose else "--track pose %d" % k)
+        frames = FrameSet(args.scene, scene, args.frames)
+        hooks = [insert.TrackHook(shape_id, track, track[0])] if args.track else []
+        result = sequence.render_frames(scene, frames, out_dir, args.spp, hooks=hooks,
+                                        exposure=args.exposure, tag="insert", log=out.log)
     print("[insert] %d frame(s) in %.1f s; results in %s"
-          % (len(frames.frames), result["seconds"], out_dir))
+          % (len(frames.frames), result["seconds"], target))
     return 0
+
+
+def _object_file(value):
+    """The file of ``--object`` (``OTHER.xml:NODE`` names OTHER.xml)."""
+    import os
+    if not os.path.exists(value) and ":" in value:
+        return value.rsplit(":", 1)[0]
+    return value

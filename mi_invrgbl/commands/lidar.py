@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 
+from .. import outdir
 from ..apps import lidar_resimulation, sequence, video
 from ..apps.frame_set import FrameSet, parse_selection
 from ..apps.pose_input import check_inside, parse_pose, read_trajectory, scene_bounds
@@ -52,6 +53,7 @@ def add_parser(sub):
                    help="set a <default> parameter of the scene (repeatable)")
     p.add_argument("--frames", default=None, metavar="A:B",
                    help="poses to simulate, python-slice style (default: all)")
+    outdir.add_overwrite_option(p)
     p.set_defaults(run=run)
 
 
@@ -75,14 +77,32 @@ def _poses(args, doc):
 
 
 def run(args):
+    if not 0.0 <= args.drop_rate < 1.0:
+        raise UserError("--drop-rate must lie in [0, 1), got %g" % args.drop_rate)
+    if args.azimuth_steps is not None and args.azimuth_steps < 1:
+        raise UserError("--azimuth-steps must be at least 1, got %d" % args.azimuth_steps)
+    if args.intensity_scale is not None and not 0 < args.intensity_scale < float("inf"):
+        raise UserError("--intensity-scale must be a positive number, got %g"
+                        % args.intensity_scale)
+    for name in ("near", "far"):
+        value = getattr(args, name)
+        if value is not None and not 0 <= value < float("inf"):
+            raise UserError("--%s must be a distance >= 0 in metres, got %g" % (name, value))
+    doc = SceneDoc.load(args.scene)
+    target = args.output or os.path.splitext(args.scene)[0] + "_lidar"
+    poses, own_frames = _poses(args, doc)
+    with outdir.staged(target, "lidar", inputs=[args.scene, args.trajectory,
+                                                args.sensor if os.path.isfile(args.sensor) else None],
+                       overwrite=args.overwrite) as out:
+        _simulate(args, doc, str(out.path), poses, own_frames, out.log)
+    print("[lidar] results in %s" % target)
+    return 0
+
+
+def _simulate(args, doc, out_dir, poses, own_frames, log=print):
     import mitsuba as mi
     from ..io.images import write_exr, write_false_colour_png
     from ..io.velodyne import write_velodyne
-    if not 0.0 <= args.drop_rate < 1.0:
-        raise UserError("--drop-rate must lie in [0, 1), got %g" % args.drop_rate)
-    doc = SceneDoc.load(args.scene)
-    out_dir = args.output or os.path.splitext(args.scene)[0] + "_lidar"
-    poses, own_frames = _poses(args, doc)
     spec = lidar_resimulation.sensor_spec(args.sensor, args.azimuth_steps,
                                  lidar_resimulation.recorded_sensor(args.scene), out_dir, args.near, args.far)
     scale = (args.intensity_scale if args.intensity_scale is not None
@@ -90,7 +110,7 @@ def run(args):
     print("[lidar] sensor %s: %d beams x %d azimuth steps; %d pose(s); intensity scale %g"
           % (spec.name, spec.height, spec.width, len(poses), scale))
     edited, ident = lidar_resimulation.lidar_doc(doc, spec, poses[0][1], args.lidar_model)
-    scene, _ = sequence.write_and_load(edited, doc, out_dir, "lidar",
+    scene, _ = sequence.write_and_load(edited, doc, out_dir, "lidar", log=log,
                                        defines=sequence.defines(args))
     sensor = next(s for s in scene.sensors() if s.id() == ident)
     bounds = scene_bounds(scene)
@@ -118,8 +138,8 @@ def run(args):
         write_false_colour_png(stem + "_range.png", sweep["image"][..., 1], sweep["hit"])
         previews.append(lidar_resimulation.preview(sweep["image"]))
         print("[lidar] frame_%04d %.1f s, %d points (%.0f %% of beams return) -> %s.bin, %s.exr, %s.png"
-              % (k, time.time() - t, len(sweep["points"]), 100 * sweep["hit"].mean(), stem, stem, stem))
+              % (k, time.time() - t, len(sweep["points"]), 100 * sweep["hit"].mean(),
+                 *(os.path.basename(stem),) * 3))
     for path in (video.write_animation(out_dir, previews) if len(previews) > 1 else []):
-        print("[lidar] animation -> %s" % path)
-    print("[lidar] %d sweep(s) in %.1f s; results in %s" % (len(poses), time.time() - t0, out_dir))
-    return 0
+        print("[lidar] animation -> %s" % os.path.basename(path))
+    print("[lidar] %d sweep(s) in %.1f s" % (len(poses), time.time() - t0))

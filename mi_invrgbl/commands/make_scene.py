@@ -62,8 +62,18 @@ def config_from_args(args):
 
 
 def run(args) -> int:
+    import os
+    from .. import outdir
     from ..synthetic import generate_street
     if args.kind != "street":
         raise UserError("unknown scene kind '%s'" % args.kind)
-    generate_street(args.out, config_from_args(args).validate())
+    cfg = config_from_args(args).validate()
+    # The generator writes a temporary sibling and renames it; a finished
+    # street is marked as this tool's and given the usual permissions.
+    outdir.check_new_folder(args.out, "make-scene")
+    generate_street(args.out, cfg)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(args.out, 0o777 & ~umask)
+    outdir.mark(args.out, "make-scene")
     return 0

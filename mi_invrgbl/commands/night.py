@@ -8,6 +8,7 @@ falloff. Writes the edited ``scene.xml`` (+ ``scene.diff``),
 
 from __future__ import annotations
 
+from .. import outdir
 from ..apps import lighting_edit, night, sequence
 from ..scene import xml as xml_edit
 from ..apps.frame_set import FrameSet
@@ -43,6 +44,7 @@ def add_parser(sub):
                    help="headlights at the camera: 0, 1 or 2 (default 2)")
     _spot_options(h, "headlight", night.HEADLIGHT)
     sequence.add_render_options(p)
+    outdir.add_overwrite_option(p)
     p.set_defaults(run=run)
 
 
@@ -98,13 +100,15 @@ def run(args):
     edited, head_ids = night.night_doc(doc, lighting, lamps, street_spec, args.headlights,
                                        head_spec, cam_frames.camera_to_world(cameras_scene, first))
     sequence.apply_integrator_options(edited, args)
-    out_dir = sequence.output_dir(args, "night")
-    scene, _ = sequence.write_and_load(edited, doc, out_dir, "night",
-                                         defines=sequence.defines(args))
-    frames = FrameSet(args.scene, scene, args.frames)
-    hook = night.HeadlightHook(head_ids, frames)
-    result = sequence.render_frames(scene, frames, out_dir, args.spp, hooks=[hook],
-                                    exposure=args.exposure, tag="night")
+    target = sequence.output_dir(args, "night")
+    with outdir.staged(target, "night", inputs=[args.scene], overwrite=args.overwrite) as out:
+        out_dir = str(out.path)
+        scene, _ = sequence.write_and_load(edited, doc, out_dir, "night", log=out.log,
+                                           defines=sequence.defines(args))
+        frames = FrameSet(args.scene, scene, args.frames)
+        hook = night.HeadlightHook(head_ids, frames)
+        result = sequence.render_frames(scene, frames, out_dir, args.spp, hooks=[hook],
+                                        exposure=args.exposure, tag="night", log=out.log)
     print("[night] %d frame(s) in %.1f s; results in %s"
-          % (len(frames.frames), result["seconds"], out_dir))
+          % (len(frames.frames), result["seconds"], target))
     return 0

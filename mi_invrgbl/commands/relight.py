@@ -8,6 +8,7 @@ picks the new lighting; shadows are traced for the new sun. Writes the edited
 
 from __future__ import annotations
 
+from .. import outdir
 from ..apps import lighting_edit, relight, sequence
 from ..apps.frame_set import FrameSet
 from ..scene.xml import SceneDoc
@@ -50,10 +51,21 @@ def add_parser(sub):
                    help="replace the sky by a constant one of this radiance")
     o.add_argument("--sky-scale", type=float, default=None, help="multiply the sky by this")
     sequence.add_render_options(p)
+    outdir.add_overwrite_option(p)
     p.set_defaults(run=run)
 
 
+#: Options that change the lighting; relight without any of them would only
+#: render the scene's own light again.
+LIGHTING_OPTIONS = ("sun_elevation", "sun_azimuth", "time", "light_from", "sun_irradiance",
+                    "sky_radiance", "sky_scale")
+
+
 def run(args):
+    from ..errors import UserError
+    if all(getattr(args, name) is None for name in LIGHTING_OPTIONS):
+        raise UserError("no new lighting given: use --sun-elevation/--sun-azimuth, --time or "
+                        "--light-from (or --sun-irradiance, --sky-radiance, --sky-scale)")
     doc = SceneDoc.load(args.scene)
     base = lighting_edit.lighting_of_doc(doc)
     if base is not None:
@@ -67,12 +79,25 @@ def run(args):
     print("[relight] new lighting:   %s" % lighting.describe())
     edited = relight.relight_doc(doc, lighting)
     sequence.apply_integrator_options(edited, args)
-    out_dir = sequence.output_dir(args, "relight")
-    scene, _ = sequence.write_and_load(edited, doc, out_dir, "relight",
-                                         defines=sequence.defines(args))
-    frames = FrameSet(args.scene, scene, args.frames)
-    result = sequence.render_frames(scene, frames, out_dir, args.spp, exposure=args.exposure,
-                                    tag="relight")
+    target = sequence.output_dir(args, "relight")
+    with outdir.staged(target, "relight", inputs=[args.scene, light_source(args.light_from)],
+                       overwrite=args.overwrite) as out:
+        out_dir = str(out.path)
+        scene, _ = sequence.write_and_load(edited, doc, out_dir, "relight", log=out.log,
+                                           defines=sequence.defines(args))
+        frames = FrameSet(args.scene, scene, args.frames)
+        result = sequence.render_frames(scene, frames, out_dir, args.spp, exposure=args.exposure,
+                                        tag="relight", log=out.log)
     print("[relight] %d frame(s) in %.1f s; results in %s"
-          % (len(frames.frames), result["seconds"], out_dir))
+          % (len(frames.frames), result["seconds"], target))
     return 0
+
+
+def light_source(value):
+    """The file named by ``--light-from FILE[:KEY]`` (None without one)."""
+    if not value:
+        return None
+    import os
+    if not os.path.exists(value) and ":" in value:
+        return value.rsplit(":", 1)[0]
+    return value

@@ -27,6 +27,9 @@ def add_parser(sub):
                    help="LiDAR reflectance model for lidar sensors (default: pbr)")
     p.add_argument("--sensor", action="append", default=None,
                    help="render only the sensor with this id (repeatable)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace this command's earlier results in the output folder "
+                        "(only the files it wrote; anything else there is kept)")
     p.set_defaults(run=run)
 
 
@@ -70,16 +73,34 @@ def render_lidar(scene, sensor, model, out_dir, name):
 
 
 def run(args):
+    from .. import outdir
     scene_path = args.scene
-    out_dir = args.output or os.path.splitext(scene_path)[0] + "_render"
+    if args.spp < 0:
+        raise UserError("--spp must be >= 0 (0: the sensor's own), got %d" % args.spp)
+    target = args.output or os.path.splitext(scene_path)[0] + "_render"
     t0 = time.time()
     scene = load_scene(scene_path, parse_defines(args.defines))
-    os.makedirs(out_dir, exist_ok=True)
     sensors = list(scene.sensors())
     if not sensors:
         raise UserError("%s: the scene has no sensor" % scene_path)
+    names = [sensor_name(s, i) for i, s in enumerate(sensors)]
     wanted = set(args.sensor or [])
+    unknown = sorted(wanted - set(names))
+    if unknown:
+        raise UserError("--sensor %s: %s has no sensor of that id (it has: %s)"
+                        % (", ".join(unknown), scene_path, _shorten(names)))
     print("[render] %s: %d sensor(s), loaded in %.1f s" % (scene_path, len(sensors), time.time() - t0))
+    with outdir.staged(target, "render", inputs=[scene_path], overwrite=args.overwrite) as out:
+        _render(args, scene, sensors, wanted, str(out.path))
+    print("[render] done in %.1f s; results in %s" % (time.time() - t0, target))
+    return 0
+
+
+def _shorten(names, most=8):
+    return ", ".join(names[:most]) + (", ... (%d in all)" % len(names) if len(names) > most else "")
+
+
+def _render(args, scene, sensors, wanted, out_dir):
     for i, sensor in enumerate(sensors):
         name = sensor_name(sensor, i)
         if wanted and name not in wanted:
@@ -91,7 +112,4 @@ def run(args):
         else:
             files = render_camera(scene, sensor, args.spp, out_dir, name)
             extra = ""
-        print("[render] %-10s %.1f s%s -> %s" % (name, time.time() - t, extra,
-                                                 ", ".join(os.path.join(out_dir, f) for f in files)))
-    print("[render] done in %.1f s; results in %s" % (time.time() - t0, out_dir))
-    return 0
+        print("[render] %-10s %.1f s%s -> %s" % (name, time.time() - t, extra, ", ".join(files)))

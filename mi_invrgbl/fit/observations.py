@@ -135,7 +135,11 @@ def load_observations(scene, frames: Frames, fit_width=320, lidar_columns=512,
                     data, _ = read_exr(str(path))
                     cam.priors[kind] = cv2.resize(data, (width, height),
                                                   interpolation=cv2.INTER_AREA).reshape(height, width, -1)
-        if use_lidar and rec.lidar_scan is not None and rec.lidar_scan.is_file():
+        if use_lidar and rec.lidar_scan is not None and not rec.lidar_scan.is_file():
+            # frames.json lists it: training without it would fit the frame without LiDAR.
+            raise UserError("%s: LiDAR scan of frame %d not found (listed in %s)"
+                            % (rec.lidar_scan, rec.index, frames.path))
+        if use_lidar and rec.lidar_scan is not None:
             sensor = _find_sensor(scene, rec.lidar)
             if sensor is not None:
                 intensity, rng, hit = _read_scan(rec.lidar_scan)

@@ -80,13 +80,21 @@ def plot_error_vs_time(rows, path, key="heldout_psnr", key2="heldout_intensity_r
     """A small PNG plot (OpenCV drawing) of held-out error against wall time."""
     import numpy as np
     import cv2
-    pts = [(float(r["wall_s"]), r.get(key), r.get(key2)) for r in rows if r.get(key) not in ("", None)]
+    def number(v):
+        try:
+            v = float(v)
+        except (TypeError, ValueError):
+            return None
+        return v if np.isfinite(v) else None
+    # Rows without a finite value (NaN: no held-out frame, all weights 0) are not drawn.
+    pts = [(float(r["wall_s"]), number(r.get(key)), number(r.get(key2))) for r in rows
+           if number(r.get(key)) is not None and number(r.get("wall_s")) is not None]
     W, H, m = 640, 360, 50
     img = np.full((H, W, 3), 255, np.uint8)
     if len(pts) >= 1:
         t = np.array([p[0] for p in pts])
         series = [(key, np.array([float(p[1]) for p in pts]), (200, 60, 30))]
-        if all(p[2] not in ("", None) for p in pts):
+        if all(p[2] is not None for p in pts):
             series.append((key2, np.array([float(p[2]) for p in pts]), (30, 120, 220)))
         tmax = max(t.max(), 1e-6)
         cv2.line(img, (m, H - m), (W - m, H - m), (0, 0, 0), 1)

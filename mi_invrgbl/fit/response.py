@@ -459,3 +459,143 @@ def format_statistics(rows) -> str:
         lines.append("%5.1f-%-5.1f %7d  %6.3f  %6.3f  %6.3f  %8.4f"
                      % (r["lo"], r["hi"], r["n"], r["median"], r["p25"], r["p75"], r["inv_d2"]))
     return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------
+# Ray drop
+# ----------------------------------------------------------------------------
+
+def fit_return_model(distance, cos_theta, albedo, beam, returned, n_beams: int,
+                     beam_l2: float = 1.0, iterations: int = 30):
+    """Fit a :class:`~mi_invrgbl.physics.lidar_response.ReturnModel`.
+
+    One sample per beam that reaches a surface in the fitted scene: its range,
+    incidence cosine and LiDAR albedo there, its beam, and whether the sensor
+    reported a return (``returned``). Logistic regression by Newton's method
+    (IRLS) on ``[1, log d, log cos, log rho]`` plus per-beam offsets, the
+    offsets with an L2 penalty ``beam_l2`` (beams with few samples stay at the
+    common intercept) and a tiny one elsewhere (a separable set stays finite).
+    """
+    from ..physics.lidar_response import ReturnModel
+    y = np.asarray(returned, np.float64).ravel()
+    F = ReturnModel.features(distance, cos_theta, albedo)
+    b = np.minimum(np.asarray(beam, np.int64).ravel(), max(int(n_beams), 1) - 1)
+    n, B = y.size, max(int(n_beams), 1)
+    if n == 0:
+        return ReturnModel(np.zeros(3), np.full(B, 10.0))
+    X = np.hstack([np.ones((n, 1)), F])
+    k = X.shape[1]
+    theta = np.zeros(k)
+    dev = np.zeros(B)
+    pen = np.full(k, 1e-6 * n)
+    for _ in range(int(iterations)):
+        z = X @ theta + dev[b]
+        p = 1.0 / (1.0 + np.exp(-np.clip(z, -30, 30)))
+        W = np.maximum(p * (1 - p), 1e-9)
+        g_x = X.T @ (y - p) - pen * theta
+        g_b = np.bincount(b, weights=y - p, minlength=B) - beam_l2 * dev
+        # Newton step on the joint system [X | E] with E the beam indicators.
+        H_xx = (X * W[:, None]).T @ X + np.diag(pen)
+        H_xb = np.stack([np.bincount(b, weights=W * X[:, j], minlength=B) for j in range(k)])
+        H_bb = np.diag(np.bincount(b, weights=W, minlength=B) + beam_l2)
+        H = np.block([[H_xx, H_xb], [H_xb.T, H_bb]])
+        step = np.linalg.solve(H + 1e-12 * np.eye(k + B), np.concatenate([g_x, g_b]))
+        theta += step[:k]
+        dev += step[k:]
+        if np.max(np.abs(step)) < 1e-8:
+            break
+    return ReturnModel(theta[1:], theta[0] + dev)
+
+
+def scene_return_samples(scene, integrator, frames, positions, lidar_size=None):
+    """Samples for :func:`fit_return_model` from frames of a fitted scene.
+
+    For each frame position: the scene posed at that frame, its LiDAR sensor's
+    beams rendered by ``integrator`` (without a ray-drop model), and the
+    observed range image's ``hit`` channel. Returns numpy arrays
+    ``(distance, cos, albedo, beam, returned)`` over beams that reach a surface.
+    """
+    import drjit as dr
+    import mitsuba as mi
+    from ..io.images import read_exr
+    from ..plugins.lidar_return import LidarReturnIntegrator
+    from ..scene.posing import set_frame
+    saved = integrator.return_model
+    integrator.return_model = None
+    out = [[] for _ in range(5)]
+    try:
+        for k in positions:
+            rec = frames[k]
+            if rec.lidar_scan is None:
+                continue
+            _, sensor = set_frame(scene, frames, k)
+            if sensor is None:
+                continue
+            img, names = read_exr(str(rec.lidar_scan))
+            hit_obs = img[..., [n.lower() for n in names].index("hit")].ravel() > 0.5
+            rays, beam, _, near = LidarReturnIntegrator.beam_rays(sensor)
+            extra = {}
+            with dr.suspend_grad():
+                ch = integrator.render_beams(scene, rays, beam, near=near, extra=extra)
+            surf = np.array(extra["surface"], bool)
+            if surf.size != hit_obs.size:
+                continue
+            vals = (np.array(ch[1]), np.array(extra["cos"]), np.array(ch[3]), np.array(beam),
+                    hit_obs)
+            for lst, v in zip(out, vals):
+                lst.append(np.asarray(v)[surf])
+    finally:
+        integrator.return_model = saved
+    if not out[0]:
+        return tuple(np.zeros(0) for _ in range(5))
+    return tuple(np.concatenate(v) for v in out)
+
+
+def write_return_model(scene_lidar_xml, model) -> None:
+    """Set the ``return_weights`` / ``return_bias`` of the ``lidar_return``
+    integrator in ``scene_lidar_xml`` (a file this package wrote)."""
+    import os
+    import xml.etree.ElementTree as ET
+    tree = ET.parse(scene_lidar_xml)
+    root = tree.getroot()
+    integ = next((e for e in root if e.tag == "integrator" and e.get("type") == "lidar_return"),
+                 None)
+    if integ is None:
+        raise ValueError("%s: no lidar_return integrator" % scene_lidar_xml)
+    for e in [e for e in integ if e.get("name") in ("return_weights", "return_bias")]:
+        integ.remove(e)
+    ET.SubElement(integ, "string", {"name": "return_weights", "value": format_gains(model.weights)})
+    ET.SubElement(integ, "string", {"name": "return_bias", "value": format_gains(model.beam_bias)})
+    ET.indent(tree, space="  ")
+    tmp = str(scene_lidar_xml) + ".part"
+    tree.write(tmp, encoding="unicode")
+    os.replace(tmp, scene_lidar_xml)
+
+
+def fit_scene_ray_drop(scene_xml, scene_lidar_xml, log=print) -> dict:
+    """Fit the ray-drop model of a fitted scene on its training frames and
+    write it into ``scene_lidar_xml``; returns the fit's summary."""
+    import mitsuba as mi
+    import xml.etree.ElementTree as ET
+    from ..physics.lidar_response import return_scores
+    from ..scene.frames import Frames
+    frames = Frames.load(scene_xml)
+    scene = mi.load_file(str(scene_xml))
+    root = ET.parse(scene_lidar_xml).getroot()
+    integ_el = next(e for e in root if e.tag == "integrator")
+    integrator = mi.load_string('<scene version="3.0.0">%s</scene>'
+                                % ET.tostring(integ_el, encoding="unicode")).integrator()
+    train = [k for k in range(len(frames)) if not frames[k].held_out]
+    d, c, rho, beam, ret = scene_return_samples(scene, integrator, frames, train)
+    n_beams = max(int(frames.lidar.beams) if frames.lidar is not None else 1,
+                  int(beam.max()) + 1 if beam.size else 1)
+    model = fit_return_model(d, c, rho, beam, ret, n_beams)
+    write_return_model(scene_lidar_xml, model)
+    pred = model.logit_np(d, c, rho, beam) >= 0
+    summary = {"weights": {k: float(v) for k, v in zip(("log_range", "log_cos", "log_albedo"),
+                                                        model.weights)},
+               "samples": int(d.size), "train": return_scores(ret, pred)}
+    log("[fit] ray-drop model on %d beams reaching a surface: weights log d %.2f, log cos %.2f, "
+        "log rho %.2f; training drop accuracy %.3f, F1 %.3f"
+        % (d.size, *model.weights, summary["train"]["accuracy"], summary["train"]["f1"]))
+    return summary

@@ -56,20 +56,3 @@ def write_false_colour_png(path: str, values: np.ndarray, mask: np.ndarray | Non
     data = np.ascontiguousarray((grey * 255 + 0.5).astype(np.uint8))
     bitmap = mi.Bitmap(data, mi.Bitmap.PixelFormat.Y)
     _atomic(path, lambda p: bitmap.write(p, mi.Bitmap.FileFormat.PNG))
-
-
-def read_image_uint8(path, size, crop=None) -> np.ndarray:
-    """An 8-bit image as (H, W, 3) RGB uint8 at ``size`` (W, H): cropped from
-    the top left to ``crop`` (W, H) first if given, then resized (area
-    averaging). One error naming the file if it cannot be read."""
-    import cv2
-    from ..errors import UserError
-
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise UserError(f"{path}: not a readable image")
-    if crop is not None:
-        img = img[:crop[1], :crop[0]]
-    if (img.shape[1], img.shape[0]) != tuple(size):
-        img = cv2.resize(img, tuple(size), interpolation=cv2.INTER_AREA)
-    return np.ascontiguousarray(img[:, :, ::-1])     # RGB uint8

@@ -69,7 +69,6 @@ import numpy as np
 
 from .. import outdir
 from ..errors import UserError
-from .images import read_image_uint8
 from . import init_gaussians as ig
 from .objects import ObjectTrack, tracks_to_objects, in_box, box_surface_samples
 
@@ -273,6 +272,22 @@ def _scaled_size(W0, H0, scale):
     return W, H, (W0, H0)        # no exact crop: scales differ by < 1 pixel over the image
 
 
+def _read_image_uint8(path, size, crop=None, expected=None):
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise UserError(f"{path}: not a readable image")
+    if expected is not None and (img.shape[1], img.shape[0]) != tuple(expected):
+        raise UserError(f"{path}: image is {img.shape[1]}x{img.shape[0]}, the calibration's "
+                        f"(and the drive's) is {expected[0]}x{expected[1]}")
+    if crop is not None:
+        img = img[:crop[1], :crop[0]]
+    if (img.shape[1], img.shape[0]) != tuple(size):
+        img = cv2.resize(img, tuple(size), interpolation=cv2.INTER_AREA)
+    return np.ascontiguousarray(img[:, :, ::-1])     # RGB uint8
+
+
 # ----------------------------------------------------------------------------
 # The import
 # ----------------------------------------------------------------------------
@@ -300,8 +315,7 @@ def import_scene(data, out_xml, options: ImportOptions | None = None, log=print)
             steps.run("extend walls", _extend_walls, state, opts, log)
         steps.run("normals", _background, state, opts, log)
         if opts.triangulate:
-            from .triangulate import import_step
-            steps.run("triangulate", import_step, src, state, opts, log)
+            steps.run("triangulate", _triangulate, src, state, opts, log)
         steps.run("objects", _objects, state, opts, log)
         steps.run("colours", _colours, state, opts, log)
         frames = steps.run("write", _write, src, state, opts, out.path, out_xml.name, data)
@@ -346,7 +360,7 @@ def _read(data, opts, log):
             continue
         kept.append(p)
         scans.append((pts, inten))
-        images.append(read_image_uint8(drive.image_paths[p], (W, H), crop))
+        images.append(_read_image_uint8(drive.image_paths[p], (W, H), crop, (W0, H0)))
     if not kept:
         raise UserError(f"{drive.root}: no frame with a usable LiDAR sweep")
     log("[import] %s (%s layout): %d frames%s, image %dx%d -> %dx%d"
@@ -645,6 +659,59 @@ def _background(state: ImportState, opts, log):
     log("[import] %d voxels of %.3f m -> %d background Gaussians (max %d); LiDAR "
         "intensity '%s'%s" % (nvox, opts.voxel, n, opts.max_points, kind,
                              " (white at %.2f m reads 1)" % ref if kind == "raw" else ""))
+
+
+# -- camera-only geometry --------------------------------------------------------
+
+def _triangulate(src, state: ImportState, opts, log, options=None):
+    """``mi-invrgbl import``'s camera-geometry step: triangulate the training
+    frames (full-resolution images, the drive's own intrinsics), keep the
+    points the LiDAR lacks and append them as Gaussians to the background
+    (``state.background``, before colours). LiDAR albedo of those
+    Gaussians: the median of the LiDAR's (they are never scanned). They
+    count towards ``--max-points`` (at most a quarter of it): as many LiDAR
+    Gaussians, drawn at random, make room."""
+    from .triangulate import (TriangulationOptions, camera_gaussians, far_from, held_out,
+                              triangulate_frames)
+
+    options = options or TriangulationOptions()
+    drive = src.drive
+    positions = state.positions
+    W0, H0 = drive.image_size
+    training = [i for i in range(len(positions)) if not held_out(i)]
+    if len(training) < 2:
+        log("[import] fewer than two training frames: no triangulation")
+        return
+
+    def load(i):
+        return _read_image_uint8(drive.image_paths[positions[i]], (W0, H0))
+
+    pts = triangulate_frames(load, state.cam_poses, drive.K, training, options, log=log)
+    n_all = len(pts)
+    pts = pts.subset(far_from(pts.points, state.bg.points, options.lidar_clearance))
+    bg = state.background
+    n_bg = len(bg["centers"])
+    # The camera-only Gaussians take their place inside --max-points: the
+    # same number of LiDAR Gaussians (drawn at random, seeded) make room.
+    cap = min(len(pts), opts.max_points // 4)
+    if cap < len(pts):
+        far_first = np.argsort(-pts.depth, kind="stable")[:cap]
+        pts = pts.subset(np.sort(far_first))
+    room = max(0, n_bg + len(pts) - opts.max_points)
+    if room:
+        rng = np.random.default_rng([opts.seed, 2])
+        keep = np.sort(rng.choice(n_bg, n_bg - room, replace=False))
+        for key in ("centers", "scales", "quaternions", "normals", "lidar_albedo"):
+            bg[key] = bg[key][keep]
+    g = camera_gaussians(pts, drive.K)
+    g["lidar_albedo"][:] = float(np.median(bg["lidar_albedo"])) if len(bg["lidar_albedo"]) else 0.0
+    for key in ("centers", "scales", "quaternions", "normals", "lidar_albedo"):
+        bg[key] = np.concatenate([bg[key], g[key].astype(bg[key].dtype)])
+    state.counts["camera_gaussians"] = len(pts)
+    state.counts["background_gaussians"] = int(len(bg["centers"]))
+    log("[import] %d triangulated points, %d where the LiDAR has no point within %.2f m "
+        "-> camera-only Gaussians" % (n_all, len(pts), options.lidar_clearance))
+
 
 
 # -- objects ----------------------------------------------------------------------------

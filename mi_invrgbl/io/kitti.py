@@ -98,8 +98,27 @@ def _numbers(calib: dict, key, path: Path, count: int) -> np.ndarray:
             if values.size != count:
                 raise UserError(f"{path}: entry {k!r} has {values.size} numbers, "
                                 f"expected {count}")
+            if not np.all(np.isfinite(values)):
+                raise UserError(f"{path}: entry {k!r} holds a NaN or infinite number")
             return values
     raise UserError(f"{path}: missing entry {keys[0]!r}")
+
+
+def _check_rotation(R, where: str, tol: float = 1e-3) -> None:
+    """A rigid transform's rotation: orthonormal with determinant +1."""
+    R = np.asarray(R, np.float64)
+    det = float(np.linalg.det(R))
+    if abs(det - 1) > 10 * tol or np.abs(R.T @ R - np.eye(3)).max() > tol:
+        raise UserError(f"{where} is not a rotation (determinant {det:.3g}"
+                        f"{', singular' if abs(det) < 1e-9 else ''}); a rigid "
+                        "transform has an orthonormal 3x3 block")
+
+
+def _check_projection(P, path: Path, key: str) -> None:
+    K = P[:, :3]
+    if not (K[0, 0] > 0 and K[1, 1] > 0 and abs(np.linalg.det(K)) > 1e-12):
+        raise UserError(f"{path}: entry {key!r} is not a camera projection (focal lengths "
+                        f"{K[0, 0]:g}, {K[1, 1]:g}); expected fx, fy > 0")
 
 
 def _homogeneous(R, t) -> np.ndarray:
@@ -328,6 +347,8 @@ def _read_oxts(folder: Path, frames) -> np.ndarray:
             raise UserError(f"{path}: not a list of numbers") from None
         if len(values) < 6:
             raise UserError(f"{path}: {len(values)} values, expected 30")
+        if not np.all(np.isfinite(values[:6])):
+            raise UserError(f"{path}: position or orientation holds a NaN or infinite value")
         rows.append(values[:6])
     return np.array(rows)
 
@@ -343,8 +364,11 @@ def read_kitti_raw(path, drive: str | None = None, check: bool = True) -> Drive:
     velo = _read_key_values(velo_file)
     R_rect = np.eye(4)
     R_rect[:3, :3] = _numbers(cam, "R_rect_00", cam_file, 9).reshape(3, 3)
+    _check_rotation(R_rect[:3, :3], f"{cam_file}: entry 'R_rect_00'")
     P2 = _numbers(cam, "P_rect_02", cam_file, 12).reshape(3, 4)
+    _check_projection(P2, cam_file, "P_rect_02")
     R = _numbers(velo, "R", velo_file, 9).reshape(3, 3)
+    _check_rotation(R, f"{velo_file}: entry 'R'")
     t = _numbers(velo, "T", velo_file, 3)
     T_velo_to_cam = R_rect @ _homogeneous(R, t)
 
@@ -365,8 +389,9 @@ def read_kitti_raw(path, drive: str | None = None, check: bool = True) -> Drive:
     if oxts_dir.is_dir():
         imu_file = date_dir / "calib_imu_to_velo.txt"
         imu = _read_key_values(imu_file)
-        T_imu_to_velo = _homogeneous(_numbers(imu, "R", imu_file, 9).reshape(3, 3),
-                                     _numbers(imu, "T", imu_file, 3))
+        R_imu = _numbers(imu, "R", imu_file, 9).reshape(3, 3)
+        _check_rotation(R_imu, f"{imu_file}: entry 'R'")
+        T_imu_to_velo = _homogeneous(R_imu, _numbers(imu, "T", imu_file, 3))
         imu_poses = oxts_to_poses(_read_oxts(oxts_dir, frames))
         # world(first velo) <- velo_i = velo<-imu . imu0<-imu_i . imu<-velo
         poses = T_imu_to_velo @ imu_poses @ np.linalg.inv(T_imu_to_velo)
@@ -422,8 +447,10 @@ def read_kitti_odometry(path, sequence: str | None = None, check: bool = True) -
     calib_file = seq_dir / "calib.txt"
     calib = _read_key_values(calib_file)
     P2 = _numbers(calib, "P2", calib_file, 12).reshape(3, 4)
+    _check_projection(P2, calib_file, "P2")
     Tr = np.vstack([_numbers(calib, ("Tr", "Tr_velo_to_cam"), calib_file, 12).reshape(3, 4),
                     [0, 0, 0, 1]])
+    _check_rotation(Tr[:3, :3], f"{calib_file}: entry 'Tr'")
 
     image_dir, scan_dir = seq_dir / "image_2", seq_dir / "velodyne"
     images = _frame_files(image_dir, IMAGE_EXTS)
@@ -440,6 +467,10 @@ def read_kitti_odometry(path, sequence: str | None = None, check: bool = True) -
         if times.size <= frames[-1]:
             raise UserError(f"{times_file}: {times.size} times for frame numbers up "
                             f"to {frames[-1]}")
+        bad = np.flatnonzero(~np.isfinite(times))
+        if bad.size:
+            raise UserError(f"{times_file}: line {bad[0] + 1} is not a finite number "
+                            f"({times[bad[0]]})")
         timestamps = times[frames] - times[frames[0]]
 
     poses, source = None, None
@@ -454,6 +485,11 @@ def read_kitti_odometry(path, sequence: str | None = None, check: bool = True) -
         if cam_poses.shape[0] <= frames[-1]:
             raise UserError(f"{pose_file}: {cam_poses.shape[0]} poses for frame "
                             f"numbers up to {frames[-1]}")
+        bad = np.flatnonzero(~np.all(np.isfinite(cam_poses), axis=1))
+        if bad.size:
+            raise UserError(f"{pose_file}: line {bad[0] + 1} holds a NaN or infinite number")
+        for f in frames:
+            _check_rotation(cam_poses[f].reshape(3, 4)[:, :3], f"{pose_file}: line {f + 1}")
         C = np.tile(np.eye(4), (len(frames), 1, 1))
         C[:, :3, :] = cam_poses[frames].reshape(-1, 3, 4)
         # Camera-0 poses -> sensor poses with the first sensor frame as world.

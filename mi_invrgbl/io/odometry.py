@@ -132,6 +132,8 @@ MAX_SPEED = 70.0
 #: metres (the images of a slow drive resolve steps of a few decimetres
 #: poorly; the failure this catches is odometry reporting ~0 for 1 m steps)
 STEP_RATIO = 2.0
+#: image blocks (columns, rows) that vote on the image motion separately
+BLOCKS = (4, 2)
 STEP_SLACK_M = 0.5
 
 
@@ -238,18 +240,24 @@ def image_steps(images, scans, K, T_velo_to_cam, deltas, max_step: float = 4.0,
         t = D[:3, 3]
         direction = t / np.linalg.norm(t) if np.linalg.norm(t) > 0.05 else np.array([1.0, 0, 0])
         rotated = pts @ D[:3, :3].T
-        errors = []
-        for s_ in candidates:
+        # Image blocks vote separately: a car driving ahead fills a few blocks
+        # and pulls them towards its own relative motion, the street's static
+        # sides hold the others.
+        u, v = uv_b[ok_b][:, 0], uv_b[ok_b][:, 1]
+        block = (np.minimum((u / W * BLOCKS[0]).astype(int), BLOCKS[0] - 1) * BLOCKS[1]
+                 + np.minimum((v / H * BLOCKS[1]).astype(int), BLOCKS[1] - 1))
+        errors = np.full((len(candidates), BLOCKS[0] * BLOCKS[1]), np.inf)
+        for c, s_ in enumerate(candidates):
             moved = rotated + s_ * direction
             uv_a, ok_a = _project(moved @ T[:3, :3].T + T[:3, 3], K, W, H)
-            if ok_a.sum() < min_points:
-                errors.append(np.inf)
-                continue
-            diff = np.abs(_sample(a, uv_a[ok_a]) - colour_b[ok_a]).sum(1)
-            errors.append(float(np.median(diff)))
-        errors = np.asarray(errors)
-        if np.isfinite(errors).any():
-            steps[k] = float(candidates[int(np.argmin(errors))])
+            diff = np.abs(_sample(a, uv_a) - colour_b).sum(1)
+            for j in range(BLOCKS[0] * BLOCKS[1]):
+                sel = ok_a & (block == j)
+                if sel.sum() >= min_points // 4:
+                    errors[c, j] = float(np.median(diff[sel]))
+        usable = np.isfinite(errors).all(axis=0)
+        if usable.sum() >= 2:
+            steps[k] = float(np.median(candidates[np.argmin(errors[:, usable], axis=0)]))
     return steps
 
 

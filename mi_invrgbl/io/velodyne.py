@@ -16,7 +16,10 @@ Checks and their outcome:
 * points with a NaN/inf coordinate or intensity -> dropped, one ``UserWarning``
   with the count (some converters write them for ray drops);
 * an empty sweep -> returned as empty arrays with a ``UserWarning`` (a sensor
-  can legitimately return nothing, e.g. when blocked; callers decide).
+  can legitimately return nothing, e.g. when blocked; callers decide);
+* points exactly at the sensor's origin are not returns (some converters
+  write zeros for ray drops): dropped with a ``UserWarning``; a sweep whose
+  points *all* lie there is a zero-filled (corrupt) file -> ``UserError``.
 
 Intensity normalisation: the project works with intensities in [0, 1].
 KITTI's HDL-64 reflectance is already in [0, 0.99], so by default values in
@@ -83,6 +86,15 @@ def read_velodyne(path, intensity_scale: float | None = None):
         if data.shape[0] == 0:
             warnings.warn(f"{path}: no finite points left (empty sweep)",
                           UserWarning, stacklevel=2)
+
+    at_origin = np.all(data[:, :3] == 0, axis=1)
+    if at_origin.any():
+        if at_origin.all():
+            raise UserError(f"{path}: all {data.shape[0]} points lie at the sensor's origin "
+                            "(0, 0, 0); the sweep is zero-filled or corrupt")
+        warnings.warn(f"{path}: dropped {int(at_origin.sum())} of {data.shape[0]} points at "
+                      "the sensor's origin (not returns)", UserWarning, stacklevel=2)
+        data = data[~at_origin]
 
     points = np.ascontiguousarray(data[:, :3])
     intensity = normalize_intensity(data[:, 3], intensity_scale, path)

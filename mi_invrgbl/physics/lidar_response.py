@@ -118,3 +118,64 @@ class LidarResponse:
         return colocated_intensity_np(factor, cos_theta, distance, g[b], p,
                                       float(np.asarray(self.angle_exponent).ravel()[0]),
                                       float(np.asarray(self.range_exponent).ravel()[0]))
+
+
+#: Features of the ray-drop model, in the order of its weights.
+RETURN_FEATURES = ("log_range", "log_cos", "log_albedo")
+#: Floors of the features' logarithms (a return at grazing incidence or from
+#: a black surface stays finite).
+RETURN_FLOOR = 1e-3
+
+
+@dataclass
+class ReturnModel:
+    r"""Ray drop as a model: the probability that a beam reaching a surface
+    reports a return,
+
+    .. math::  p = \sigma(c_{beam} + w_1 \log d + w_2 \log\cos\theta + w_3 \log\rho)
+
+    (``sigma`` the logistic function, ``rho`` the LiDAR albedo). Weak returns
+    are lost: ``log(rho cos / d^2)`` is the log of the return strength, so
+    the model holds a sensor whose detection threshold acts on it, with
+    per-beam offsets ``c_beam`` for beams that see more or less. A beam with
+    no surface (accumulated opacity below the hit threshold) never returns.
+    """
+    weights: np.ndarray        # (3,) for RETURN_FEATURES
+    beam_bias: np.ndarray      # (B,) indexed by beam; past the end: the last
+
+    def logit(self, distance, cos_theta, albedo, beam):
+        """Dr.Jit log-odds of a return."""
+        n = len(self.beam_bias)
+        bias = dr.gather(mi.Float, mi.Float(np.asarray(self.beam_bias, np.float32)),
+                         dr.minimum(mi.UInt32(beam), n - 1))
+        w = [float(v) for v in self.weights]
+        return (bias + w[0] * dr.log(dr.maximum(distance, RETURN_FLOOR))
+                + w[1] * dr.log(dr.maximum(cos_theta, RETURN_FLOOR))
+                + w[2] * dr.log(dr.maximum(albedo, RETURN_FLOOR)))
+
+    @staticmethod
+    def features(distance, cos_theta, albedo) -> np.ndarray:
+        """(N, 3) numpy features (see :data:`RETURN_FEATURES`)."""
+        return np.stack([np.log(np.maximum(np.asarray(v, np.float64), RETURN_FLOOR))
+                         for v in (distance, cos_theta, albedo)], axis=1)
+
+    def logit_np(self, distance, cos_theta, albedo, beam) -> np.ndarray:
+        b = np.asarray(self.beam_bias, np.float64)
+        return (b[np.minimum(np.asarray(beam, np.int64), b.size - 1)]
+                + self.features(distance, cos_theta, albedo) @ np.asarray(self.weights, np.float64))
+
+    def probability_np(self, distance, cos_theta, albedo, beam) -> np.ndarray:
+        return 1.0 / (1.0 + np.exp(-self.logit_np(distance, cos_theta, albedo, beam)))
+
+
+def return_scores(returned, predicted) -> dict:
+    """Accuracy and F1 of the drop class (no return) of a ray-drop prediction."""
+    y = ~np.asarray(returned, bool).ravel()
+    p = ~np.asarray(predicted, bool).ravel()
+    tp = int(np.sum(y & p))
+    fp = int(np.sum(~y & p))
+    fn = int(np.sum(y & ~p))
+    f1 = 2 * tp / max(2 * tp + fp + fn, 1)
+    return {"accuracy": float(np.mean(y == p)) if y.size else float("nan"), "f1": float(f1),
+            "drop_rate_observed": float(np.mean(y)) if y.size else float("nan"),
+            "drop_rate_predicted": float(np.mean(p)) if p.size else float("nan"), "n": int(y.size)}

@@ -74,6 +74,11 @@ class GaussiansDoc:
     """
 
 
+#: Every parameter the plugin reads (see the class docstring).
+PARAMETERS = ("filename", "centers", "scales", "quaternions", "opacities", "normals", "albedo",
+              "roughness", "lidar_albedo", "sun_visibility", "to_world", "extent")
+
+
 def _tensor_prop(props, name):
     if name not in props:
         return None
@@ -193,6 +198,12 @@ def make_gaussians(props):
     if len(cloud) == 0:
         raise ValueError("%s: no Gaussians" % cloud.source)
     shape_id = props.id() or "gaussians"
+    unknown = sorted(set(props.keys()) - set(PARAMETERS))
+    if unknown:
+        # A misspelt parameter would otherwise be ignored without a word.
+        raise ValueError("gaussians '%s': unknown parameter(s) %s (known: %s)"
+                         % (shape_id, ", ".join("'%s'" % u for u in unknown),
+                            ", ".join(PARAMETERS)))
     for name in list(props.keys()):
         props.mark_queried(name)
     return mi.load_dict(ellipsoids_dict(cloud, shape_id, extent))

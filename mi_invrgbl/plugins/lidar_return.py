@@ -6,7 +6,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..physics import brdf, hits as hitlib
-from ..physics.lidar_response import LidarResponse, parse_gains
+from ..physics.lidar_response import LidarResponse, ReturnModel, parse_gains
 
 _variant = mi.variant()
 
@@ -54,6 +54,21 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
      * - f0
        - |float|
        - Fresnel reflectance at normal incidence. (Default: 0.04)
+     * - return_weights, return_bias
+       - |string|
+       - Ray-drop model (:class:`~mi_invrgbl.physics.lidar_response.ReturnModel`):
+         the weights of ``log d, log cos, log rho`` (3 values) and the per-beam
+         offsets of the return log-odds. A beam that reaches a surface returns
+         where the probability is at least 1/2 (or with that probability, see
+         ``sample_drop``). (Default: none, every beam that reaches a surface returns)
+     * - sample_drop
+       - |bool|
+       - Draw each return with its probability (a simulated sweep that drops
+         rays as the sensor does; seeded by ``seed`` and the ray index) instead
+         of thresholding at 1/2. (Default: false)
+     * - seed
+       - |int|
+       - Seed of ``sample_drop``. (Default: 0)
 
     For every film pixel (row = beam, column = azimuth step) the integrator
     traces the sensor's exact beam (the pixel centre; no filtering) and returns
@@ -98,6 +113,16 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
         gains = props.get("beam_gains", "1")
         self.beam_gains = mi.Float(parse_gains(gains))
         self.f0 = float(props.get("f0", brdf.F0_DEFAULT))
+        self.return_model = None
+        if "return_weights" in props:
+            w = parse_gains(props.get("return_weights"))
+            b = parse_gains(props.get("return_bias", "0"))
+            if len(w) != 3:
+                raise ValueError("lidar_return: return_weights must hold 3 values "
+                                 "(log range, log cos, log albedo), got %d" % len(w))
+            self.return_model = ReturnModel(w, b)
+        self.sample_drop = bool(props.get("sample_drop", False))
+        self.seed = int(props.get("seed", 0))
         if self.max_hits < 1:
             raise ValueError("lidar_return: max_hits must be >= 1")
         if not 0 < self.hit_threshold <= 1:
@@ -158,8 +183,12 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
         power = self._laser_power(scene) if scene is not None else mi.Float(self.default_power)
         return LidarResponse(self.range_exponent, self.angle_exponent, self.beam_gains, power)
 
-    def render_beams(self, scene, rays, row, hit_list=None, near=0.0):
+    def render_beams(self, scene, rays, row, hit_list=None, near=0.0, extra=None):
         """Channels (list of per-ray Floats, see CHANNELS) for ``rays``.
+
+        ``extra``: a dict that, if given, receives per ray ``cos`` (the blended
+        incidence cosine) and ``surface`` (the beam reaches a surface, before
+        the ray-drop model): what fitting a ray-drop model needs.
 
         ``near`` is the distance from the sensor to each ray's origin (scalar
         or per ray), added to every range.
@@ -193,17 +222,32 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
         s_dist = si.t + near
         s_int = response(s_factor, s_cos, s_dist, row)
         c = hitlib.composite_front_to_back(
-            g, w, t_after, {"intensity": intensity_k, "alpha": 1.0, "range": dist, "rho": rho},
+            g, w, t_after,
+            {"intensity": intensity_k, "alpha": 1.0, "range": dist, "rho": rho, "cos": g.cos_theta},
             {"intensity": dr.select(surf, s_int, 0.0), "alpha": dr.select(surf, 1.0, 0.0),
-             "range": dr.select(surf, s_dist, 0.0), "rho": dr.select(surf, s_rho, 0.0)})
+             "range": dr.select(surf, s_dist, 0.0), "rho": dr.select(surf, s_rho, 0.0),
+             "cos": dr.select(surf, s_cos, 0.0)})
         intensity, alpha, depth_sum, rho_sum = c["intensity"], c["alpha"], c["range"], c["rho"]
-
+        cos_sum = c["cos"]
         hit = alpha >= self.hit_threshold
         norm = dr.rcp(dr.maximum(alpha, 1e-8))
+        rng_m = depth_sum * norm
+        rho_m = rho_sum * norm
+        if self.return_model is not None:
+            logit = self.return_model.logit(rng_m, cos_sum * norm, rho_m, row)
+            if self.sample_drop:
+                n = dr.width(rng_m)
+                pcg = mi.PCG32(n, dr.arange(mi.UInt64, n), mi.UInt64(self.seed))
+                hit &= pcg.next_float32() < dr.rcp(1.0 + dr.exp(-logit))
+            else:
+                hit &= logit >= 0.0
+        if extra is not None:
+            extra["cos"] = dr.select(alpha > 0, cos_sum * norm, 0.0)
+            extra["surface"] = alpha >= self.hit_threshold
         return [dr.select(hit, intensity, 0.0),
-                dr.select(hit, depth_sum * norm, 0.0),
+                dr.select(hit, rng_m, 0.0),
                 dr.select(hit, mi.Float(1.0), 0.0),
-                dr.select(hit, rho_sum * norm, 0.0),
+                dr.select(hit, rho_m, 0.0),
                 alpha]
 
     def _render(self, scene, sensor):

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 
-from ..errors import UserError
+from ..errors import UserError, mitsuba_message
 
 
 def parse_defines(defines) -> dict:
@@ -33,8 +33,7 @@ def load_scene(path, defines=None):
     try:
         return mi.load_file(path, **(defines or {}))
     except Exception as exc:  # Mitsuba reports parse and plugin errors as RuntimeError
-        message = str(exc).strip().splitlines()
-        raise UserError("%s: cannot load scene: %s" % (path, message[-1] if message else exc)) from None
+        raise UserError("%s: cannot load scene: %s" % (path, mitsuba_message(exc))) from None
 
 
 def is_lidar(sensor) -> bool:

@@ -32,7 +32,7 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 
-from ..errors import UserError
+from ..errors import UserError, mitsuba_message
 
 #: Names of ``<string>`` parameters that hold a file path.
 PATH_PARAMETERS = ("filename", "rays")
@@ -222,8 +222,7 @@ def load_parts(doc: SceneDoc, tags, what: str):
     try:
         return mi.load_string(ET.tostring(root, encoding="unicode"))
     except Exception as exc:  # Mitsuba reports plugin errors as RuntimeError
-        lines = str(exc).strip().splitlines()
-        raise UserError("%s: cannot load %s: %s" % (doc.path, what, lines[-1] if lines else exc)) from None
+        raise UserError("%s: cannot load %s: %s" % (doc.path, what, mitsuba_message(exc))) from None
 
 
 # ------------------------------------------------------------ element makers

@@ -165,3 +165,21 @@ def drop_probability(strength, base_rate: float) -> np.ndarray:
     s = np.maximum(np.asarray(strength, np.float64), 1e-12)
     weak = 1.0 / (1.0 + np.exp((np.log(s) - math.log(WEAK_SIGNAL)) / WEAK_WIDTH))
     return base_rate + (1.0 - base_rate) * weak
+
+
+def solid_state_rays(rows: int = 20, per_row: int = 120, fov_deg: float = 100.0) -> np.ndarray:
+    """An example explicit pattern (N, 7) of a forward-looking solid-state
+    sensor: ``rows`` rows at non-uniform elevations (dense from -1 to -6
+    degrees, sparse down to -20), ``per_row`` rays over ``fov_deg`` of
+    azimuth, every third row shifted by a fraction of a step (not a grid);
+    column 7 is the row (beam). Save it with ``np.save`` for ``--lidar rays:F``."""
+    dense = max(rows * 3 // 5, 2)
+    el = np.concatenate([np.linspace(-1, -6, dense), np.linspace(-7, -20, rows - dense)])
+    out = []
+    for k, e in enumerate(el):
+        az = np.radians(np.linspace(-fov_deg / 2, fov_deg / 2, per_row) + (k % 3) * 0.27)
+        er = np.radians(e)
+        d = np.stack([np.cos(er) * np.cos(az), np.cos(er) * np.sin(az),
+                      np.full_like(az, np.sin(er))], 1)
+        out.append(np.hstack([np.zeros_like(d), d, np.full((per_row, 1), k)]))
+    return np.concatenate(out)

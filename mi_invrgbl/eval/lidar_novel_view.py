@@ -1,0 +1,330 @@
+"""LiDAR novel-view scoring: a scene's LiDAR against a lookup, on raw held-out points.
+
+A held-out sweep is scored along the rays the sensor actually fired, not on a
+range image: binning both the observation and the simulation into a beam x
+azimuth grid moves every point to its pixel centre and keeps one point per
+pixel, which flatters a simulator (and a lookup the most). Per held-out frame:
+
+* **returns**: every raw point of the sweep (``points_NNNN.npy``, world
+  frame), as the ray from the sensor's position through the point, with its
+  beam from the sweep's beam table (nearest elevation);
+* **non-returns**: the range image's pixels without a return (ray drop or
+  nothing in range), as the beam through the pixel centre.
+
+The scene renders each ray with its ``lidar_return`` integrator (the fitted
+response and ray-drop model of ``scene_lidar.xml``). The **lookup baseline**
+(:mod:`mi_invrgbl.eval.baselines`) is built from *every* point of every
+training sweep, with no subsampling: its intensity is the nearest training
+point's at the held-out point itself (it is handed the true geometry), and its
+range and ray drop come from casting each ray into the training points' 0.2 m
+voxel occupancy (the first occupied voxel along the ray, none: no return).
+
+Scores (pooled over the frames):
+
+* ``intensity_rmse``: over observed returns that the predictor also returns
+  (``coverage`` is that share); the baseline is also scored on the model's
+  subset (``intensity_rmse_on_model_returns``) so the two compare on the same
+  points;
+* ``range_mae`` / ``range_median``: absolute range error (metres) on the same set;
+* ``drop_accuracy`` / ``drop_f1``: return vs. no return over all rays, F1 of
+  the no-return class.
+
+The same scores on the range image (``range_image``) are reported beside them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import os
+import xml.etree.ElementTree as ET
+
+import numpy as np
+
+from ..errors import UserError
+from ..physics.lidar_response import return_scores
+from .baselines import NearestNeighbourIntensity, load_points
+
+#: Voxel of the lookup's ray caster (metres) and its marching step.
+VOXEL = 0.2
+STEP = 0.1
+
+
+class PointCloudCaster:
+    """First training point along a ray: voxel occupancy marched at ``STEP``."""
+
+    def __init__(self, xyz, voxel: float = VOXEL, max_cells: int = 400_000_000):
+        p = np.asarray(xyz, np.float64).reshape(-1, 3)
+        p = p[np.isfinite(p).all(axis=1)]
+        if p.shape[0] == 0:
+            raise ValueError("PointCloudCaster: no training points")
+        self.voxel = voxel
+        self.lo = p.min(axis=0) - voxel
+        idx = np.floor((p - self.lo) / voxel).astype(np.int64)
+        self.shape = idx.max(axis=0) + 2
+        cells = int(np.prod(self.shape))
+        if cells > max_cells:
+            raise ValueError("PointCloudCaster: the points span %d voxels (> %d)" % (cells, max_cells))
+        self.occ = np.zeros(cells, bool)
+        self.occ[np.ravel_multi_index(idx.T, self.shape)] = True
+
+    def cast(self, origin, directions, near: float, far: float, chunk: int = 4096):
+        """Range of the first occupied voxel along each ray (0: none)."""
+        d = np.asarray(directions, np.float64).reshape(-1, 3)
+        o = np.asarray(origin, np.float64).reshape(-1, 3)
+        o = np.broadcast_to(o, d.shape)
+        t = np.arange(near, far, STEP)
+        out = np.zeros(d.shape[0])
+        for s in range(0, d.shape[0], chunk):
+            dd, oo = d[s:s + chunk], o[s:s + chunk]
+            pts = oo[:, None, :] + dd[:, None, :] * t[None, :, None]
+            idx = np.floor((pts - self.lo) / self.voxel).astype(np.int64)
+            inside = np.all((idx >= 0) & (idx < self.shape), axis=-1)
+            flat = np.zeros(inside.shape, np.int64)
+            flat[inside] = np.ravel_multi_index(idx[inside].T, self.shape)
+            hit = inside & self.occ[flat]
+            first = np.argmax(hit, axis=1)
+            any_hit = hit[np.arange(hit.shape[0]), first]
+            out[s:s + chunk] = np.where(any_hit, t[first], 0.0)
+        return out
+
+
+@dataclass
+class FrameRays:
+    """The rays of one held-out sweep (world frame)."""
+    origin: np.ndarray        # (3,)
+    directions: np.ndarray    # (N, 3) unit
+    beam: np.ndarray          # (N,)
+    returned: np.ndarray      # (N,) bool
+    range: np.ndarray         # (N,) observed range (0 for non-returns)
+    intensity: np.ndarray     # (N,) observed intensity (0 for non-returns)
+    points: np.ndarray        # (N, 3) observed points (origin for non-returns)
+
+
+def _beam_of(local_dirs, table_rad):
+    elev = np.arctan2(local_dirs[:, 2], np.hypot(local_dirs[:, 0], local_dirs[:, 1]))
+    order = np.argsort(table_rad)
+    pos = np.clip(np.searchsorted(table_rad[order], elev), 1, len(order) - 1)
+    lo, hi = order[pos - 1], order[pos]
+    return np.where(np.abs(elev - table_rad[lo]) <= np.abs(elev - table_rad[hi]), lo, hi)
+
+
+def frame_rays(rec, sensor, table_deg, pattern=None) -> FrameRays:
+    """Returns (raw points) and non-returns of frame ``rec``.
+
+    Non-returns are the range image's pixels without a return, or, for an
+    explicit ray ``pattern`` ((N, 3) unit directions in the sensor frame), the
+    pattern's rays that no point of the sweep lies on (within 1e-3 rad).
+    """
+    from ..io.images import read_exr
+    T = np.asarray(rec.lidar_to_world, np.float64)
+    o, R = T[:3, 3], T[:3, :3]
+    pts = np.load(str(rec.points))
+    p = pts[:, :3].astype(np.float64)
+    v = p - o
+    rng = np.linalg.norm(v, axis=1)
+    ok = rng > 1e-6
+    p, v, rng, inten = p[ok], v[ok], rng[ok], pts[ok, 3].astype(np.float64)
+    d = v / rng[:, None]
+    table = np.radians(np.asarray(table_deg, np.float64))
+    beam = _beam_of(d @ R, table)
+    dirs_nr = np.zeros((0, 3))
+    beam_nr = np.zeros(0, np.int64)
+    if pattern is not None:
+        pat = np.asarray(pattern, np.float64).reshape(-1, 3)
+        pat = pat / np.linalg.norm(pat, axis=1, keepdims=True)
+        near = NearestNeighbourIntensity(np.c_[d @ R, np.zeros(len(d))])
+        _, dist = near.query(pat)
+        miss = dist > 1e-3
+        dirs_nr = pat[miss] @ R.T
+        beam_nr = _beam_of(pat[miss], table)
+    elif rec.lidar_scan is not None and sensor is not None:
+        img, names = read_exr(str(rec.lidar_scan))
+        hit = img[..., [n.lower() for n in names].index("hit")] > 0.5
+        local = np.asarray(sensor.ray_directions_local(), np.float64)
+        if local.shape[:2] == hit.shape:
+            dirs_nr = local[~hit] @ R.T
+            beam_nr = np.broadcast_to(np.arange(hit.shape[0])[:, None], hit.shape)[~hit]
+    n_nr = dirs_nr.shape[0]
+    return FrameRays(o, np.vstack([d, dirs_nr]), np.concatenate([beam, beam_nr]).astype(np.int64),
+                     np.concatenate([np.ones(len(d), bool), np.zeros(n_nr, bool)]),
+                     np.concatenate([rng, np.zeros(n_nr)]),
+                     np.concatenate([inten, np.zeros(n_nr)]),
+                     np.vstack([p, np.broadcast_to(o, (n_nr, 3))]))
+
+
+def render_rays(scene, integrator, origin, directions, beam, near: float, far: float):
+    """``(intensity, range, hit)`` of the scene's LiDAR along world rays."""
+    import drjit as dr
+    import mitsuba as mi
+    d = np.asarray(directions, np.float64)
+    o = np.asarray(origin, np.float64) + d * near
+    rays = mi.Ray3f(mi.Point3f(o.T.astype(np.float32)), mi.Vector3f(d.T.astype(np.float32)))
+    rays.maxt = mi.Float(np.full(len(d), far - near, np.float32))
+    with dr.suspend_grad():
+        ch = integrator.render_beams(scene, rays, mi.UInt32(np.asarray(beam, np.uint32)),
+                                     near=float(near))
+    return np.array(ch[0], np.float64), np.array(ch[1], np.float64), np.array(ch[2]) > 0.5
+
+
+def _scores(obs_ret, obs_range, obs_int, pred_ret, pred_range, pred_int, subset=None):
+    both = obs_ret & pred_ret
+    err = np.abs(pred_range[both] - obs_range[both])
+    out = {"intensity_rmse": float(np.sqrt(np.mean((pred_int[both] - obs_int[both]) ** 2)))
+           if both.any() else float("nan"),
+           "range_mae": float(err.mean()) if err.size else float("nan"),
+           "range_median": float(np.median(err)) if err.size else float("nan"),
+           "coverage": float(both.sum() / max(obs_ret.sum(), 1))}
+    drop = return_scores(obs_ret, pred_ret)
+    out["drop_accuracy"], out["drop_f1"] = drop["accuracy"], drop["f1"]
+    out["drop_rate_predicted"] = drop["drop_rate_predicted"]
+    if subset is not None:
+        s = obs_ret & subset
+        out["intensity_rmse_on_model_returns"] = float(
+            np.sqrt(np.mean((pred_int[s] - obs_int[s]) ** 2))) if s.any() else float("nan")
+    return out
+
+
+def load_lidar_integrator(scene_lidar_xml, model: str | None = None):
+    """The ``lidar_return`` integrator of a fit's ``scene_lidar.xml``."""
+    import mitsuba as mi
+    try:
+        root = ET.parse(scene_lidar_xml).getroot()
+    except (ET.ParseError, OSError) as exc:
+        raise UserError("%s: cannot read: %s" % (scene_lidar_xml, exc)) from None
+    integ = next((e for e in root if e.tag == "integrator" and e.get("type") == "lidar_return"), None)
+    if integ is None:
+        raise UserError("%s: no lidar_return integrator" % scene_lidar_xml)
+    if model is not None:
+        for e in integ:
+            if e.get("name") == "model":
+                e.set("value", model)
+    return mi.load_string('<scene version="3.0.0">%s</scene>'
+                          % ET.tostring(integ, encoding="unicode")).integrator()
+
+
+def _pose(scene, frames, k):
+    """The scene at frame ``k`` (objects posed; acceleration structure refreshed)."""
+    import mitsuba as mi
+    from ..scene.posing import set_frame
+    cam, lidar = set_frame(scene, frames, k)
+    if frames.objects:
+        params = mi.traverse(scene)
+        keys = [n + ".data" for n in frames.objects if n + ".data" in params.keys()]
+        for key in keys:
+            params[key] = type(params[key])(np.array(params[key]))
+        if keys:
+            params.update()
+    return lidar
+
+
+def score_scene(scene_xml, scene_lidar_xml=None, positions=None, model: str | None = None,
+                pattern=None, log=print) -> dict:
+    """Score a (fitted) scene's LiDAR on raw held-out points against the lookup.
+
+    ``positions``: frame positions to score (default: the held-out frames).
+    ``model``: override the integrator's ``pbr`` / ``lambertian`` model.
+    ``pattern``: the sensor's explicit ray pattern ((N, 3) directions in the
+    sensor frame) for a non-spinning sensor (see :func:`frame_rays`).
+    """
+    import mitsuba as mi
+    from ..scene.frames import Frames
+    frames = Frames.load(scene_xml)
+    if scene_lidar_xml is None:
+        cand = os.path.join(os.path.dirname(str(scene_xml)), "scene_lidar.xml")
+        scene_lidar_xml = cand if os.path.isfile(cand) else None
+    integrator = (load_lidar_integrator(scene_lidar_xml, model) if scene_lidar_xml
+                  else mi.load_dict({"type": "lidar_return", "model": model or "pbr"}))
+    scene = mi.load_file(str(scene_xml))
+    if positions is None:
+        positions = [k for k in range(len(frames)) if frames[k].held_out]
+    held = set(positions) | {k for k in range(len(frames)) if frames[k].held_out}
+    paths = [frames[k].points for k in range(len(frames))
+             if k not in held and frames[k].points is not None and os.path.isfile(frames[k].points)]
+    if not paths:
+        raise UserError("%s: no training frame has LiDAR points: no lookup baseline" % scene_xml)
+    train = load_points(paths)                       # every point, no subsample
+    nn = NearestNeighbourIntensity(train)
+    caster = PointCloudCaster(train[:, :3])
+    table = frames.lidar.elevations_deg
+    log("[lidar-eval] lookup baseline: %d training points from %d sweeps" % (len(nn), len(paths)))
+    acc = {k: [] for k in ("obs_ret", "obs_range", "obs_int", "m_ret", "m_range", "m_int",
+                           "b_ret", "b_range", "b_int")}
+    img = {k: [] for k in ("obs_ret", "obs_range", "obs_int", "m_ret", "m_range", "m_int",
+                           "b_int")}
+    for k in positions:
+        rec = frames[k]
+        if rec.points is None or not os.path.isfile(rec.points):
+            continue
+        sensor = _pose(scene, frames, k)
+        near = float(getattr(sensor, "near_clip", 0.5)) if sensor is not None else 0.5
+        far = float(getattr(sensor, "far_clip", 120.0)) if sensor is not None else 120.0
+        fr = frame_rays(rec, sensor, table, pattern)
+        m_int, m_rng, m_hit = render_rays(scene, integrator, fr.origin, fr.directions, fr.beam,
+                                          near, far)
+        b_rng = caster.cast(fr.origin, fr.directions, near, min(far, 80.0))
+        b_int = np.where(fr.returned, nn.predict(fr.points), 0.0)
+        for key, v in (("obs_ret", fr.returned), ("obs_range", fr.range), ("obs_int", fr.intensity),
+                       ("m_ret", m_hit), ("m_range", m_rng), ("m_int", m_int),
+                       ("b_ret", b_rng > 0), ("b_range", b_rng), ("b_int", b_int)):
+            acc[key].append(v)
+        # The range-image score of the same frame.
+        if sensor is not None and rec.lidar_scan is not None and pattern is None:
+            from ..io.images import read_exr
+            from ..plugins.lidar_return import LidarReturnIntegrator
+            import drjit as dr
+            arr, names = read_exr(str(rec.lidar_scan))
+            names = [n.lower() for n in names]
+            o_hit = arr[..., names.index("hit")].ravel() > 0.5
+            o_rng = arr[..., names.index("range")].ravel().astype(np.float64)
+            o_int = arr[..., names.index("intensity")].ravel().astype(np.float64)
+            rays, beam, _, nr = LidarReturnIntegrator.beam_rays(sensor)
+            with dr.suspend_grad():
+                ch = integrator.render_beams(scene, rays, beam, near=nr)
+            if dr.width(ch[0]) == o_hit.size:
+                T = np.asarray(rec.lidar_to_world, np.float64)
+                dirs = np.asarray(sensor.ray_directions_local(), np.float64).reshape(-1, 3) @ T[:3, :3].T
+                pts = T[:3, 3] + dirs * o_rng[:, None]
+                for key, v in (("obs_ret", o_hit), ("obs_range", o_rng), ("obs_int", o_int),
+                               ("m_ret", np.array(ch[2]) > 0.5), ("m_range", np.array(ch[1], np.float64)),
+                               ("m_int", np.array(ch[0], np.float64)),
+                               ("b_int", np.where(o_hit, nn.predict(pts), 0.0))):
+                    img[key].append(v)
+        log("[lidar-eval] frame %d: %d returns, %d non-returns" % (rec.index, int(fr.returned.sum()),
+                                                                   int((~fr.returned).sum())))
+    if not acc["obs_ret"]:
+        raise UserError("%s: no frame to score (held-out frames need points files)" % scene_xml)
+    a = {k: np.concatenate(v) for k, v in acc.items()}
+    model_s = _scores(a["obs_ret"], a["obs_range"], a["obs_int"], a["m_ret"], a["m_range"], a["m_int"])
+    base_s = _scores(a["obs_ret"], a["obs_range"], a["obs_int"], a["b_ret"], a["b_range"], a["b_int"],
+                     subset=a["m_ret"])
+    # The lookup's intensity is defined at every observed return (true geometry).
+    r = a["obs_ret"]
+    base_s["intensity_rmse_all_returns"] = float(np.sqrt(np.mean((a["b_int"][r] - a["obs_int"][r]) ** 2)))
+    out = {"raw_points": {"model": model_s, "baseline": base_s,
+                          "returns": int(r.sum()), "non_returns": int((~r).sum())},
+           "frames": [frames[k].index for k in positions], "train_points": len(nn)}
+    if img["obs_ret"]:
+        b = {k: np.concatenate(v) for k, v in img.items()}
+        m_img = _scores(b["obs_ret"], b["obs_range"], b["obs_int"], b["m_ret"], b["m_range"], b["m_int"])
+        o = b["obs_ret"]
+        b_img = {"intensity_rmse": float(np.sqrt(np.mean((b["b_int"][o] - b["obs_int"][o]) ** 2))),
+                 "intensity_rmse_on_model_returns": float(np.sqrt(np.mean(
+                     (b["b_int"][o & b["m_ret"]] - b["obs_int"][o & b["m_ret"]]) ** 2)))
+                 if (o & b["m_ret"]).any() else float("nan")}
+        out["range_image"] = {"model": m_img, "baseline": b_img}
+    return out
+
+
+def format_scores(result) -> str:
+    """A small text table of :func:`score_scene`'s result."""
+    lines = ["                 intensity RMSE   range MAE [m]  drop acc  drop F1  coverage"]
+    for where in ("raw_points", "range_image"):
+        if where not in result:
+            continue
+        for who in ("model", "baseline"):
+            s = result[where][who]
+            lines.append("%-11s %-8s %8.4f (%6.4f)  %10.3f  %8.3f  %7.3f  %8.3f" % (
+                where.replace("_", " "), who, s.get("intensity_rmse", np.nan),
+                s.get("intensity_rmse_on_model_returns", np.nan), s.get("range_mae", np.nan),
+                s.get("drop_accuracy", np.nan), s.get("drop_f1", np.nan), s.get("coverage", np.nan)))
+    return "\n".join(lines)
