@@ -332,7 +332,9 @@ def test_nn_baseline_million_points_fast():
 def test_eval_keeps_what_fit_wrote(fit_dir):
     from mi_invrgbl.cli import main
     out = fit_dir / "fit_and_eval.json"
-    out.write_text('{"selection": {"sun": {"use_sun": true}}, "wall_s": 12.5}')   # as fit leaves it
+    # As fit leaves it (the keys eval recognises a fit's metrics file by).
+    out.write_text('{"selection": {"sun": {"use_sun": true}}, "wall_s": 12.5, '
+                   '"heldout_psnr": 21.5, "config": {"seed": 0}}')
     assert main(["eval", str(fit_dir), "-o", str(out), "--no-baseline", "--no-relight"]) == 0
     res = json.loads(out.read_text())
     assert res["fit"]["wall_s"] == 12.5 and res["fit"]["selection"]["sun"]["use_sun"]

@@ -10,6 +10,7 @@
 * :mod:`.scoring`      -- :func:`.scoring.evaluate`: every selected frame
   scored, the table, ``metrics.json``.
 * :mod:`.baselines`    -- the nearest-neighbour LiDAR intensity baseline.
+* :mod:`.lidar_novel_view` -- LiDAR novel-view scoring on raw held-out points.
 
 ``mi-invrgbl eval`` (:mod:`mi_invrgbl.commands.eval`) only parses its
 arguments and calls :func:`.scoring.evaluate`; the benchmarks under

@@ -69,7 +69,6 @@ import numpy as np
 
 from .. import outdir
 from ..errors import UserError
-from .images import read_image_uint8
 from . import init_gaussians as ig
 from .objects import ObjectTrack, tracks_to_objects, in_box, box_surface_samples
 
