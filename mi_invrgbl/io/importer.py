@@ -70,6 +70,7 @@ import numpy as np
 from .. import outdir
 from ..errors import UserError
 from . import init_gaussians as ig
+from .images import read_image_uint8
 from .objects import ObjectTrack, tracks_to_objects, in_box, box_surface_samples
 
 #: sweeps with fewer points are skipped (with a warning)
