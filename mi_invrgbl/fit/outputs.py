@@ -104,7 +104,8 @@ def write_outputs(ctx, stage2, interrupted=False):
     if stage2 is not None and any(f.lidar is not None for f in ctx.train_frames):
         from .response import fit_scene_ray_drop
         ctx.selection["ray_drop"] = fit_scene_ray_drop(
-            os.path.join(fit_dir, "scene.xml"), os.path.join(fit_dir, "scene_lidar.xml"), log=ctx.log)
+            os.path.join(fit_dir, "scene.xml"), os.path.join(fit_dir, "scene_lidar.xml"),
+            frames=ctx.frames, log=ctx.log)
     maps = 0
     if stage2 is not None:
         maps = write_maps(ctx, stage2, os.path.join(fit_dir, "maps"))

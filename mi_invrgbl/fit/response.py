@@ -581,14 +581,16 @@ def write_return_model(scene_lidar_xml, model) -> None:
     os.replace(tmp, scene_lidar_xml)
 
 
-def fit_scene_ray_drop(scene_xml, scene_lidar_xml, log=print) -> dict:
+def fit_scene_ray_drop(scene_xml, scene_lidar_xml, frames=None, log=print) -> dict:
     """Fit the ray-drop model of a fitted scene on its training frames and
-    write it into ``scene_lidar_xml``; returns the fit's summary."""
+    write it into ``scene_lidar_xml``; returns the fit's summary. ``frames``
+    (default: the ``frames.json`` beside the scene) are the scene's records:
+    a fit being written has none beside it yet."""
     import mitsuba as mi
     import xml.etree.ElementTree as ET
     from ..physics.lidar_response import return_scores
     from ..scene.frames import Frames
-    frames = Frames.load(scene_xml)
+    frames = frames if frames is not None else Frames.load(scene_xml)
     scene = mi.load_file(str(scene_xml))
     root = ET.parse(scene_lidar_xml).getroot()
     integ_el = next(e for e in root if e.tag == "integrator")

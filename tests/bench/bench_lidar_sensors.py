@@ -153,16 +153,18 @@ def response_transfer(scene_dir, train_end=30, new=range(32, 40), voxel=0.2):
         pred = r.predict(rho[sel], nv["d"][sel], nv["cos"][sel], nv["beam"][sel])
         rows.append({"fit": name, "range_exponent": r.range_exponent, "angle_exponent": r.angle_exponent,
                      "gains": [float(r.beam_gains.min()), float(r.beam_gains.max())],
-                     "rmse": float(np.sqrt(np.mean((pred - nv["I"][sel]) ** 2))), "points": int(sel.sum())})
+                     "residual": float(r.residual_rms), "rmse": float(np.sqrt(np.mean((pred - nv["I"][sel]) ** 2))), "points": int(sel.sum())})
     nn = NearestNeighbourIntensity(np.c_[tr["xyz"], tr["I"]])
     rows.append({"fit": "lookup (every training point)", "points": int(sel.sum()),
                  "rmse": float(np.sqrt(np.mean((nn.predict(nv["xyz"][sel]) - nv["I"][sel]) ** 2)))})
-    print("| response fit | range exp. b | angle exp. a | beam gains | new-pose intensity RMSE |")
-    print("|---|---|---|---|---|")
+    print("| response fit | range exp. b | angle exp. a | beam gains | training residual | "
+          "new-pose intensity RMSE |")
+    print("|---|---|---|---|---|---|")
     for r in rows:
-        print("| %s | %s | %s | %s | %.4f |" % (
+        print("| %s | %s | %s | %s | %s | %.4f |" % (
             r["fit"], _f(r.get("range_exponent"), "%.3f"), _f(r.get("angle_exponent"), "%.3f"),
-            "%.2f-%.2f" % tuple(r["gains"]) if "gains" in r else "—", r["rmse"]))
+            "%.2f-%.2f" % tuple(r["gains"]) if "gains" in r else "—", _f(r.get("residual")),
+            r["rmse"]))
     return rows
 
 
