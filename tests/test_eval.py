@@ -251,6 +251,57 @@ def test_eval_perfect_on_own_renders(fit_dir, capsys):
     assert res["lidar_response"].endswith("scene_lidar.xml")
 
 
+def test_eval_raw_point_score_and_full_baseline(fit_dir, capsys):
+    """eval scores the LiDAR twice: on the range image and on the raw held-out
+    points along their own rays, the lookup built from every training point."""
+    from mi_invrgbl.cli import main
+    out = fit_dir / "raw.json"
+    assert main(["eval", str(fit_dir), "-o", str(out), "--no-relight"]) == 0
+    printed = capsys.readouterr().out
+    for col in ("I-RMSE", "NN-RMSE", "I-raw", "NN-raw", "drop-F1"):
+        assert col in printed
+    res = json.loads(out.read_text())
+    row = res["frames"][0]
+    # The observations are the scene's own renders: perfect along the fired rays too.
+    assert row["raw_intensity_rmse"] < 1e-4 and row["raw_range_error"] < 1e-3
+    assert row["raw_drop_accuracy"] == 1.0 and row["raw_coverage"] == 1.0
+    assert row["raw_baseline_intensity_rmse"] > 1e-3     # the lookup from frames 0 and 1
+    raw = res["lidar_raw_points"]
+    scan = np.load(fit_dir / "observations" / "points_0002.npy")
+    hits = (json.loads((fit_dir / "frames.json").read_text())["lidar"]["beams"] * AZ)
+    assert raw["returns"] == len(scan) and raw["returns"] + raw["non_returns"] == hits
+    assert raw["model"]["drop_f1"] == 1.0 or raw["non_returns"] == 0
+    # Every training point, no subsample.
+    n_train = sum(len(np.load(fit_dir / "observations" / ("points_%04d.npy" % i))) for i in (0, 1))
+    assert raw["train_points"] == n_train
+    assert raw["baseline"]["intensity_rmse_on_model_returns"] == pytest.approx(
+        row["raw_baseline_intensity_rmse"])
+
+
+def test_lookup_keeps_every_training_point(tmp_path):
+    """More points than any former subsample cap (2e6): all kept, still fast."""
+    import time
+    from types import SimpleNamespace
+    from mi_invrgbl.eval.lidar_novel_view import build_lookup
+    rng = np.random.default_rng(2)
+    recs = []
+    for i in range(3):
+        pts = np.column_stack([rng.uniform(0, 60, (750_000, 2)), rng.uniform(0, 3, 750_000),
+                               rng.uniform(0, 1, 750_000)]).astype(np.float32)
+        np.save(tmp_path / ("p%d.npy" % i), pts)
+        recs.append(SimpleNamespace(points=str(tmp_path / ("p%d.npy" % i)), held_out=False))
+    recs.append(SimpleNamespace(points=None, held_out=True))
+
+    class FakeFrames(list):
+        pass
+    t = time.perf_counter()
+    lookup = build_lookup(FakeFrames(recs), [3])
+    assert len(lookup) == 2_250_000 and lookup.sweeps == 3
+    q = np.load(tmp_path / "p1.npy")[:1000]
+    np.testing.assert_allclose(lookup.nn.predict(q[:, :3]), q[:, 3])
+    assert time.perf_counter() - t < 30
+
+
 def test_eval_frames_and_default_response(fit_dir, tmp_path):
     import shutil
     from mi_invrgbl.eval.scoring import evaluate
