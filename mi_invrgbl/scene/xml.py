@@ -370,6 +370,15 @@ def lidar_sensor(ident, elevations_deg, azimuth_steps, to_world, far_clip=120.0,
         transform(to_world), sampler(1, seed), film(azimuth_steps, len(elevations_deg))])
 
 
+def lidar_rays_sensor(ident, rays_file, n_rays, to_world, far_clip=120.0,
+                      seed=None) -> ET.Element:
+    """The package's ``lidar`` sensor in ``rays`` mode: an ``n_rays`` x 1 film,
+    the pattern read from ``rays_file`` (relative to the scene's folder)."""
+    return element("sensor", "lidar", ident, [
+        param("string", "rays", rays_file), param("float", "far_clip", "%g" % far_clip),
+        transform(to_world), sampler(1, seed), film(n_rays, 1)])
+
+
 def shsun_emitter(ident, sh, order, sun_direction, sun_irradiance,
                   sun_radius=None) -> ET.Element:
     """The package's ``shsun`` emitter: ``sh`` holds at least ``(order + 1)^2``
