@@ -200,3 +200,9 @@ def test_import_explicit_pattern_in_rays_mode(streets, tmp_path):
     np.testing.assert_allclose(np.sort(arr[0, hit, names.index("range")]), got, rtol=1e-4)
     img = np.array(mi.render(scene, sensor=sensor, integrator=mi.load_dict({"type": "lidar_return"})))
     assert img.shape[:2] == (1, len(rays)) and (img[0, :, 2] > 0.5).mean() > 0.5
+    # A copy written beside its own PLYs (as fit writes one) still finds the pattern.
+    from mi_invrgbl.scene.xml import SceneDoc
+    doc = SceneDoc.load(str(out / "scene.xml"), resolve_paths=False)
+    strings = list(doc.root.iter("string"))
+    assert {e.get("value") for e in strings if e.get("name") == "rays"} == {str(out / "lidar_rays.npy")}
+    assert "background.ply" in {e.get("value") for e in strings if e.get("name") == "filename"}

@@ -36,9 +36,9 @@ from ..errors import UserError, mitsuba_message
 
 #: Names of ``<string>`` parameters that hold a file path.
 PATH_PARAMETERS = ("filename", "rays")
-#: Of those, the ones Mitsuba resolves against the XML's folder. The ``lidar``
-#: sensor opens ``rays`` itself (relative to the working directory), so that
-#: one stays absolute in written files.
+#: Of those, the ones written relative to the XML's folder. The ``lidar``
+#: sensor's ``rays`` file is not copied beside a scene written elsewhere (a
+#: fit's PLYs are), so that one stays absolute in written files.
 RELATIVE_PARAMETERS = ("filename",)
 #: Emitter types that make up a scene's sky and sun (replaced by relighting).
 SKY_TYPES = ("shsun", "constant", "envmap", "sunsky", "sky", "sun", "directional")
@@ -65,7 +65,8 @@ class SceneDoc:
         """Parse ``path``; one :class:`UserError` naming the file if that fails.
 
         With ``resolve_paths`` (the default) file paths inside become absolute;
-        without, they are kept as written (a copy written beside its PLYs).
+        without, the :data:`RELATIVE_PARAMETERS` ones are kept as written (a
+        copy written beside its PLYs) and only the others become absolute.
         """
         if not os.path.isfile(path):
             raise UserError("%s: scene file not found" % path)
@@ -78,8 +79,8 @@ class SceneDoc:
             raise UserError("%s: not a Mitsuba scene (root element is <%s>, not <scene>)"
                             % (path, root.tag))
         doc = SceneDoc(root, path)
-        if resolve_paths:
-            doc._map_paths(lambda value: _absolute(value, doc.folder))
+        doc._map_paths(lambda value: _absolute(value, doc.folder),
+                       None if resolve_paths else RELATIVE_PARAMETERS)
         return doc
 
     def copy(self) -> "SceneDoc":
@@ -123,9 +124,10 @@ class SceneDoc:
             written.append(diff_path)
         return written
 
-    def _map_paths(self, fn):
+    def _map_paths(self, fn, skip=None):
         for elem in _path_elements(self.root):
-            elem.set("value", fn(elem.get("value")))
+            if skip is None or elem.get("name") not in skip:
+                elem.set("value", fn(elem.get("value")))
 
     # -------------------------------------------------------------- queries
     def children(self, tag: str, types=None) -> list[ET.Element]:
