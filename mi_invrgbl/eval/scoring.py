@@ -274,7 +274,7 @@ def relight_pass(scene, frames, positions, rows, sky, light, gt_dir, R, spp, int
 
 
 def evaluate(scene_path, frames_spec="held-out", spp=0, samples=None, lidar_model=None,
-             baseline=True, relight=True, save_renders=None, raw_points=True, log=print):
+             baseline=True, relight=True, save_renders=None, log=print):
     """Score a scene; returns the metrics dictionary (see the module docstring)."""
     scene_xml, scene_lidar = resolve_inputs(scene_path)
     frames = Frames.load(scene_xml)
@@ -301,8 +301,7 @@ def evaluate(scene_path, frames_spec="held-out", spp=0, samples=None, lidar_mode
 
     rows = [score_frame(scene, frames, k, spp, cam_integ, lidar_integ, nn, gt_dir, R,
                         save_renders, log) for k in positions]
-    raw = raw_point_pass(scene, frames, positions, rows, lidar_integ, lookup, log) \
-        if raw_points else None
+    raw = raw_point_pass(scene, frames, positions, rows, lidar_integ, lookup, log)
     if sky is not None:
         # A moved sun needs traced sun visibility, not the fitted per-Gaussian field.
         relight_pass(scene, frames, positions, rows, sky, lights["time_b"], gt_dir, R, spp,
