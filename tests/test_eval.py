@@ -251,6 +251,57 @@ def test_eval_perfect_on_own_renders(fit_dir, capsys):
     assert res["lidar_response"].endswith("scene_lidar.xml")
 
 
+def test_eval_raw_point_score_and_full_baseline(fit_dir, capsys):
+    """eval scores the LiDAR twice: on the range image and on the raw held-out
+    points along their own rays, the lookup built from every training point."""
+    from mi_invrgbl.cli import main
+    out = fit_dir / "raw.json"
+    assert main(["eval", str(fit_dir), "-o", str(out), "--no-relight"]) == 0
+    printed = capsys.readouterr().out
+    for col in ("I-RMSE", "NN-RMSE", "I-raw", "NN-raw", "drop-F1"):
+        assert col in printed
+    res = json.loads(out.read_text())
+    row = res["frames"][0]
+    # The observations are the scene's own renders: perfect along the fired rays too.
+    assert row["raw_intensity_rmse"] < 1e-4 and row["raw_range_error"] < 1e-3
+    assert row["raw_drop_accuracy"] == 1.0 and row["raw_coverage"] == 1.0
+    assert row["raw_baseline_intensity_rmse"] > 1e-3     # the lookup from frames 0 and 1
+    raw = res["lidar_raw_points"]
+    scan = np.load(fit_dir / "observations" / "points_0002.npy")
+    hits = (json.loads((fit_dir / "frames.json").read_text())["lidar"]["beams"] * AZ)
+    assert raw["returns"] == len(scan) and raw["returns"] + raw["non_returns"] == hits
+    assert raw["model"]["drop_f1"] == 1.0 or raw["non_returns"] == 0
+    # Every training point, no subsample.
+    n_train = sum(len(np.load(fit_dir / "observations" / ("points_%04d.npy" % i))) for i in (0, 1))
+    assert raw["train_points"] == n_train
+    assert raw["baseline"]["intensity_rmse_on_model_returns"] == pytest.approx(
+        row["raw_baseline_intensity_rmse"])
+
+
+def test_lookup_keeps_every_training_point(tmp_path):
+    """More points than any former subsample cap (2e6): all kept, still fast."""
+    import time
+    from types import SimpleNamespace
+    from mi_invrgbl.eval.lidar_novel_view import build_lookup
+    rng = np.random.default_rng(2)
+    recs = []
+    for i in range(3):
+        pts = np.column_stack([rng.uniform(0, 60, (750_000, 2)), rng.uniform(0, 3, 750_000),
+                               rng.uniform(0, 1, 750_000)]).astype(np.float32)
+        np.save(tmp_path / ("p%d.npy" % i), pts)
+        recs.append(SimpleNamespace(points=str(tmp_path / ("p%d.npy" % i)), held_out=False))
+    recs.append(SimpleNamespace(points=None, held_out=True))
+
+    class FakeFrames(list):
+        pass
+    t = time.perf_counter()
+    lookup = build_lookup(FakeFrames(recs), [3])
+    assert len(lookup) == 2_250_000 and lookup.sweeps == 3
+    q = np.load(tmp_path / "p1.npy")[:1000]
+    np.testing.assert_allclose(lookup.nn.predict(q[:, :3]), q[:, 3])
+    assert time.perf_counter() - t < 30
+
+
 def test_eval_frames_and_default_response(fit_dir, tmp_path):
     import shutil
     from mi_invrgbl.eval.scoring import evaluate
@@ -366,3 +417,23 @@ def test_eval_reads_scan_channels_by_name(fit_dir, tmp_path, capsys):
     assert len(err) == 1 and "lidar_0002.exr" in err[0] and "no channel 'intensity', 'range', 'hit'" \
         in err[0] and all(c in err[0].split("(it has ")[1] for c in "HIR"), err
     assert not (tmp_path / "m.json").exists()
+
+
+def test_return_samples_follow_the_moving_object(fit_dir):
+    """The ray-drop model's samples see each frame's object where it is: the
+    scene's own renders give every observed range back, beam for beam."""
+    from mi_invrgbl.eval.rendering import load_lidar_integrator
+    from mi_invrgbl.fit.response import scene_return_samples
+    from mi_invrgbl.io.images import read_exr
+    frames = Frames.load(fit_dir)
+    scene = mi.load_file(str(fit_dir / "scene.xml"))
+    integ = load_lidar_integrator(fit_dir / "scene_lidar.xml")
+    dist, cos, rho, beam, ret = scene_return_samples(scene, integ, frames, [2, 0, 1])
+    obs = []
+    for i in (2, 0, 1):
+        arr, names = read_exr(str(fit_dir / "observations" / ("lidar_%04d.exr" % i)))
+        hit = arr[..., names.index("hit")].ravel() > 0.5
+        obs.append(arr[..., names.index("range")].ravel()[hit])
+    obs = np.concatenate(obs)
+    assert ret.all() and dist.shape == obs.shape
+    np.testing.assert_allclose(dist, obs, atol=1e-3)

@@ -159,3 +159,50 @@ def test_cli_lidar_options_are_checked(tmp_path, capsys):
     assert main(["make-scene", "street", str(tmp_path / "o"), "--lidar", "rays:%s" % (tmp_path / "x.npy")]) == 2
     assert "cannot read the ray list" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_import_explicit_pattern_in_rays_mode(streets, tmp_path):
+    """``import`` of the solid-state street writes ``lidar`` sensors in ``rays``
+    mode (the recovered pattern next to the scene), one N x 1 scan per sweep
+    on those rays, and the scene loads and renders them."""
+    import shutil
+    from mi_invrgbl.io.images import read_exr
+    from mi_invrgbl.io.importer import ImportOptions, import_scene
+    from mi_invrgbl.scene.frames import Frames
+    import_scene(streets["rays"], tmp_path / "out" / "scene.xml",
+                 ImportOptions(max_points=3000, azimuth_steps=128, object_points=50, verify=False),
+                 log=lambda *a: None)
+    # Moved elsewhere: the pattern is found relative to the scene.
+    out = tmp_path / "moved"
+    shutil.move(str(tmp_path / "out"), out)
+    frames = Frames.load(out / "scene.xml")
+    rays = np.load(out / frames.lidar.extra["rays"])
+    pattern = np.load(streets["rays"] / "gt" / "lidar_rays.npy")
+    assert rays.shape[1] == 7 and frames.lidar.azimuth_steps == len(rays) <= len(pattern)
+    # Every recovered ray is one of the pattern's, its beam from its row.
+    cos = rays[:, 3:6] @ (pattern[:, 3:6] / np.linalg.norm(pattern[:, 3:6], axis=1,
+                                                            keepdims=True)).T
+    assert np.all(cos.max(axis=1) > np.cos(1e-4))
+    assert len(np.unique(rays[:, 6])) == frames.lidar.beams == 20
+    scene = mi.load_file(str(out / "scene.xml"))
+    sensor = next(s for s in scene.sensors() if s.id() == frames[0].lidar)
+    assert sensor.explicit_rays and sensor.n_beams == 20
+    np.testing.assert_array_equal(np.array(sensor.beam_index()), rays[:, 6])
+    arr, names = read_exr(str(frames[0].lidar_scan))
+    assert arr.shape[:2] == (1, len(rays))
+    hit = arr[0, :, names.index("hit")] > 0.5
+    # Each observed return lies on its own ray: the recorded point's range along it.
+    pts = np.load(frames[0].points)
+    assert hit.sum() == len(pts)
+    T = frames[0].lidar_to_world
+    local = (pts[:, :3] - T[:3, 3]) @ T[:3, :3]
+    got = np.sort(np.linalg.norm(local, axis=1))
+    np.testing.assert_allclose(np.sort(arr[0, hit, names.index("range")]), got, rtol=1e-4)
+    img = np.array(mi.render(scene, sensor=sensor, integrator=mi.load_dict({"type": "lidar_return"})))
+    assert img.shape[:2] == (1, len(rays)) and (img[0, :, 2] > 0.5).mean() > 0.5
+    # A copy written beside its own PLYs (as fit writes one) still finds the pattern.
+    from mi_invrgbl.scene.xml import SceneDoc
+    doc = SceneDoc.load(str(out / "scene.xml"), resolve_paths=False)
+    strings = list(doc.root.iter("string"))
+    assert {e.get("value") for e in strings if e.get("name") == "rays"} == {str(out / "lidar_rays.npy")}
+    assert "background.ply" in {e.get("value") for e in strings if e.get("name") == "filename"}

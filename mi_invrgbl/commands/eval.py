@@ -27,8 +27,6 @@ def add_parser(sub):
     p.add_argument("--lidar-model", choices=("pbr", "lambertian"), default=None,
                    help="LiDAR model when the fit has no scene_lidar.xml (default: pbr)")
     p.add_argument("--no-baseline", action="store_true", help="skip the nearest-neighbour baseline")
-    p.add_argument("--baseline-max-points", type=int, default=2_000_000,
-                   help="subsample the baseline's training points to this many (default: 2e6)")
     p.add_argument("--no-relight", action="store_true", help="skip the relighting score")
     p.add_argument("--save-renders", default=None, metavar="DIR",
                    help="also write each frame's renders (EXR) into DIR")
@@ -59,7 +57,7 @@ def run(args):
     try:
         result = evaluate(args.scene, args.frames, spp=args.spp, samples=args.samples,
                           lidar_model=args.lidar_model, baseline=not args.no_baseline,
-                          relight=not args.no_relight, baseline_max_points=args.baseline_max_points,
+                          relight=not args.no_relight,
                           save_renders=str(renders.path) if renders else None)
     except BaseException:
         if renders:

@@ -11,7 +11,15 @@ with ``lidar_return``, and the renders are compared with the observations:
 * LiDAR: intensity RMSE over the beams that return in the observation,
   range error (mean |dr| where both return), ray-drop accuracy (all beams),
   and the nearest-neighbour baseline's intensity RMSE on the same beams
-  (:mod:`mi_invrgbl.eval.baselines`, built from the *training* frames' points).
+  (:mod:`mi_invrgbl.eval.baselines`, built from *every* point of the training
+  frames, no subsample).
+* LiDAR on the raw held-out points (``raw_*``), scored along the rays the
+  sensor fired rather than binned into the range image, which moves each
+  point to its pixel centre and flatters a lookup the most
+  (:func:`mi_invrgbl.eval.lidar_novel_view.score_scene`): intensity RMSE over
+  the returns the scene also returns and the baseline's on the same returns,
+  range error, ray-drop accuracy and the F1 of the no-return class. Pooled
+  over the frames under ``lidar_raw_points`` in ``metrics.json``.
 * synthetic ground truth (``frames.json`` ``ground_truth.dir``, as written by
   ``make-scene street``): albedo RMSE after a per-channel scale fit, roughness
   MAE, normal angular error (degrees), LiDAR-albedo RMSE (absolute and
@@ -55,6 +63,9 @@ PSNR_CAP = 100.0
 TABLE = (("psnr", "PSNR", "%6.2f"), ("ssim", "SSIM", "%6.4f"),
          ("lidar_intensity_rmse", "I-RMSE", "%7.4f"), ("baseline_intensity_rmse", "NN-RMSE", "%7.4f"),
          ("range_error", "range", "%6.3f"), ("ray_drop_accuracy", "drop-acc", "%8.4f"),
+         ("raw_intensity_rmse", "I-raw", "%7.4f"), ("raw_baseline_intensity_rmse", "NN-raw", "%7.4f"),
+         ("raw_range_error", "rng-raw", "%6.3f"), ("raw_drop_accuracy", "drop-raw", "%8.4f"),
+         ("raw_drop_f1", "drop-F1", "%7.4f"),
          ("albedo_rmse", "albedo", "%6.4f"), ("roughness_mae", "rough", "%6.4f"),
          ("normal_angle_deg", "normal°", "%7.2f"), ("lidar_albedo_rmse", "L-alb", "%6.4f"),
          ("relight_psnr", "relight", "%7.2f"))
@@ -146,25 +157,55 @@ def json_clean(value):
     return value
 
 
-def nearest_neighbour_baseline(frames, positions, max_points, log=print):
-    """The nearest-neighbour intensity baseline from the training frames'
-    points (not the held-out ones nor the scored ones); None without points."""
-    from .baselines import NearestNeighbourIntensity, load_points
-    held = {k for k in range(len(frames)) if frames[k].held_out} | set(positions)
-    paths = [frames[k].points for k in range(len(frames))
-             if k not in held and frames[k].points is not None
-             and os.path.isfile(frames[k].points)]
-    if not paths:
+def lookup_baseline(frames, positions, log=print):
+    """The lookup baseline (:class:`~mi_invrgbl.eval.lidar_novel_view.Lookup`)
+    from *every* point of the training frames (neither held out nor scored);
+    None without training points."""
+    from .lidar_novel_view import build_lookup
+    t = time.time()
+    lookup = build_lookup(frames, positions)
+    if lookup is None:
         log("[eval] no training points: nearest-neighbour baseline skipped")
         return None
-    t = time.time()
-    pts = load_points(paths, max_points)
-    if not len(pts):
+    log("[eval] nearest-neighbour baseline: every one of %d points from %d training frame(s), "
+        "%.1f s" % (len(lookup), lookup.sweeps, time.time() - t))
+    return lookup
+
+
+#: Raw-point scores copied into each frame's row: (row key, section, score key).
+RAW_KEYS = (("raw_intensity_rmse", "model", "intensity_rmse"),
+            ("raw_range_error", "model", "range_mae"),
+            ("raw_drop_accuracy", "model", "drop_accuracy"),
+            ("raw_drop_f1", "model", "drop_f1"),
+            ("raw_coverage", "model", "coverage"),
+            ("raw_baseline_intensity_rmse", "baseline", "intensity_rmse_on_model_returns"),
+            ("raw_baseline_range_error", "baseline", "range_mae"),
+            ("raw_baseline_drop_accuracy", "baseline", "drop_accuracy"))
+
+
+def raw_point_pass(scene, frames, positions, rows, lidar_integ, lookup, log=print):
+    """LiDAR scores on the raw held-out points along their own rays
+    (:func:`mi_invrgbl.eval.lidar_novel_view.score_scene`), into ``rows``;
+    returns the pooled scores (None where no scored frame has points)."""
+    from .lidar_novel_view import score_scene
+    if frames.lidar is None or not any(frames[k].points is not None
+                                       and os.path.isfile(frames[k].points) for k in positions):
+        log("[eval] no points files for the scored frames: raw-point LiDAR score skipped")
         return None
-    nn = NearestNeighbourIntensity(pts)
-    log("[eval] nearest-neighbour baseline: %d points from %d training frame(s), %.1f s"
-        % (len(nn), len(paths), time.time() - t))
-    return nn
+    t = time.time()
+    res = score_scene(frames.path, positions=positions, scene=scene, integrator=lidar_integ,
+                      frames=frames, lookup=lookup, baseline=False, range_image=False,
+                      log=lambda *a: None)
+    for row in rows:
+        scores = res["per_frame"].get(row["index"])
+        for key, section, name in RAW_KEYS if scores else ():
+            if section in scores:
+                row[key] = scores[section][name]
+    log("[eval] raw-point LiDAR score: %d returns, %d non-returns, %.1f s"
+        % (res["raw_points"]["returns"], res["raw_points"]["non_returns"], time.time() - t))
+    pooled = res["raw_points"]
+    pooled["train_points"] = res["train_points"]
+    return pooled
 
 
 def score_frame(scene, frames, k, spp, cam_integ, lidar_integ, nn=None, gt_dir=None,
@@ -233,8 +274,7 @@ def relight_pass(scene, frames, positions, rows, sky, light, gt_dir, R, spp, int
 
 
 def evaluate(scene_path, frames_spec="held-out", spp=0, samples=None, lidar_model=None,
-             baseline=True, relight=True, baseline_max_points=2_000_000, save_renders=None,
-             log=print):
+             baseline=True, relight=True, save_renders=None, log=print):
     """Score a scene; returns the metrics dictionary (see the module docstring)."""
     scene_xml, scene_lidar = resolve_inputs(scene_path)
     frames = Frames.load(scene_xml)
@@ -246,8 +286,8 @@ def evaluate(scene_path, frames_spec="held-out", spp=0, samples=None, lidar_mode
     log("[eval] %s: %d frame(s) to score, loaded in %.1f s%s"
         % (scene_xml, len(positions), time.time() - t0,
            "" if scene_lidar is None else "; LiDAR response from %s" % scene_lidar.name))
-    nn = nearest_neighbour_baseline(frames, positions, baseline_max_points, log) \
-        if baseline else None
+    lookup = lookup_baseline(frames, positions, log) if baseline else None
+    nn = lookup.nn if lookup is not None else None
 
     gt_dir = frames.ground_truth if frames.ground_truth is not None \
         and Path(frames.ground_truth).is_dir() else None
@@ -261,6 +301,7 @@ def evaluate(scene_path, frames_spec="held-out", spp=0, samples=None, lidar_mode
 
     rows = [score_frame(scene, frames, k, spp, cam_integ, lidar_integ, nn, gt_dir, R,
                         save_renders, log) for k in positions]
+    raw = raw_point_pass(scene, frames, positions, rows, lidar_integ, lookup, log)
     if sky is not None:
         # A moved sun needs traced sun visibility, not the fitted per-Gaussian field.
         relight_pass(scene, frames, positions, rows, sky, lights["time_b"], gt_dir, R, spp,
@@ -277,8 +318,14 @@ def evaluate(scene_path, frames_spec="held-out", spp=0, samples=None, lidar_mode
             "ground_truth": str(gt_dir) if gt_dir else None,
             "notes": {"psnr": "sRGB in [0, 1], peak 1; identical images = %g dB" % PSNR_CAP,
                       "albedo_rmse": "per-channel least-squares scale fit, then RMSE",
-                      "lidar_intensity_rmse": "over beams that return in the observation"},
-            "frames": rows, "mean": _mean(rows), "lighting": lighting}
+                      "lidar_intensity_rmse": "range image: over beams that return in the "
+                                              "observation",
+                      "raw_intensity_rmse": "raw held-out points along their own rays, over "
+                                            "returns the scene also returns; the baseline "
+                                            "(every training point) on the same returns",
+                      "raw_drop_f1": "F1 of the no-return class over all rays"},
+            "frames": rows, "mean": _mean(rows), "lighting": lighting,
+            "lidar_raw_points": raw}
 
 
 def write_metrics(result, out) -> str:

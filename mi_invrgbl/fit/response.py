@@ -516,7 +516,6 @@ def scene_return_samples(scene, integrator, frames, positions, lidar_size=None):
     ``(distance, cos, albedo, beam, returned)`` over beams that reach a surface.
     """
     import drjit as dr
-    import mitsuba as mi
     from ..io.images import read_exr
     from ..plugins.lidar_return import LidarReturnIntegrator
     from ..scene.posing import set_frame
@@ -528,18 +527,11 @@ def scene_return_samples(scene, integrator, frames, positions, lidar_size=None):
             rec = frames[k]
             if rec.lidar_scan is None:
                 continue
+            # set_frame moves the objects through the scene's parameters, so
+            # the acceleration structure follows them.
             _, sensor = set_frame(scene, frames, k)
             if sensor is None:
                 continue
-            if frames.objects:
-                # Re-assign the objects' data through the scene so that its
-                # acceleration structure sees the move (Mitsuba 3.9.1).
-                params = mi.traverse(scene)
-                keys = [n + ".data" for n in frames.objects if n + ".data" in params.keys()]
-                for key in keys:
-                    params[key] = type(params[key])(np.array(params[key]))
-                if keys:
-                    params.update()
             img, names = read_exr(str(rec.lidar_scan))
             hit_obs = img[..., [n.lower() for n in names].index("hit")].ravel() > 0.5
             rays, beam, _, near = LidarReturnIntegrator.beam_rays(sensor)

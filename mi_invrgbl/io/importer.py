@@ -174,6 +174,7 @@ class ImportState:
     # accumulate
     intensity: tuple = ("raw", None)       # (kind, reference range) of the LiDAR intensity
     lidar_table: np.ndarray | None = None  # beam elevations (radians), top first
+    lidar_rays: np.ndarray | None = None   # (N, 7) explicit ray pattern (origin, direction, beam)
     beams: int = 0
     range_images: list = field(default_factory=list)    # per frame: the observed range image
     world_points: list = field(default_factory=list)    # per frame: (N, 4) x y z intensity
@@ -458,10 +459,14 @@ class _LenientPoses(dict):
 def _lidar_table(state, opts, log):
     """Beam count and table from the sweeps themselves (any spinning sensor,
     any point order); ``None`` for the table when KITTI's firing order
-    assigns the beams sweep by sweep."""
+    assigns the beams sweep by sweep. An explicit ray pattern is kept in
+    ``state.lidar_rays`` (the ``lidar`` sensor's ``rays`` mode)."""
     from .range_image import detect_beam_layout
     layout = detect_beam_layout([pts for pts, _ in state.scans], n_beams=opts.beams)
     log("[import] LiDAR: %s" % layout.describe())
+    if layout.kind == "rays":
+        state.lidar_rays = np.column_stack([np.zeros((len(layout.rays), 3)), layout.rays,
+                                            layout.ray_beam]).astype(np.float64)
     if layout.method == "scan_order":
         return layout.n_beams, None
     return layout.n_beams, layout.elevations
@@ -484,7 +489,7 @@ def _intensity_kind(src, opts):
 
 
 def _accumulate(src, state: ImportState, opts, log):
-    from .range_image import range_image
+    from .range_image import range_image, ray_image
 
     beams, table = _lidar_table(state, opts, log)
     state.intensity = _intensity_kind(src, opts)
@@ -497,7 +502,10 @@ def _accumulate(src, state: ImportState, opts, log):
         R, t = poses[i][:3, :3], poses[i][:3, 3]
         world = ig.transform_points(pts, poses[i])
         world_points.append(np.hstack([world, inten[:, None]]).astype(np.float32))
-        ri = range_image(pts, inten, width=W, n_beams=beams, beam_elevations=table)
+        if state.lidar_rays is not None:
+            ri = ray_image(pts, inten, state.lidar_rays[:, 3:6], table)
+        else:
+            ri = range_image(pts, inten, width=W, n_beams=beams, beam_elevations=table)
         rimgs.append(ri)
         methods.append(ri.method)
         tables.append(ri.elevations)
@@ -778,12 +786,19 @@ def _cloud(d, opts, source):
         source=source).validate()
 
 
+#: The explicit ray pattern of a non-spinning sensor, next to scene.xml:
+#: (N, 7) origin, unit direction (sensor frame) and beam of each ray.
+LIDAR_RAYS_FILE = "lidar_rays.npy"
+
+
 def _write(src, state: ImportState, opts, tmp: Path, scene_name: str, data):
     """Everything into ``tmp``: PLYs, observations, frames.json, scene.xml."""
     from ..scene.frames import Frames
     from ..scene.imported import imported_scene
 
     objects = _write_clouds(state, opts, tmp)
+    if state.lidar_rays is not None:
+        np.save(tmp / LIDAR_RAYS_FILE, state.lidar_rays)
     records = _write_observations(src, state, tmp / "observations", list(objects))
     camera, lidar, extra = _sensors_and_notes(src, state, opts)
     gt = src.gt_dir.absolute() if src.gt_dir is not None else None
@@ -870,9 +885,10 @@ def _sensors_and_notes(src, state: ImportState, opts):
     camera = CameraInfo(W, H, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
                         extra={"image_scale": opts.image_scale}
                         | ({"source_crop_wh": list(state.crop)} if state.crop else {}))
-    lidar = LidarInfo(state.beams, opts.azimuth_steps,
+    rays = state.lidar_rays
+    lidar = LidarInfo(state.beams, opts.azimuth_steps if rays is None else len(rays),
                       [round(float(np.degrees(e)), 6) for e in state.lidar_table], kind,
-                      extra={"far_clip": 120.0})
+                      extra={"far_clip": 120.0} | ({} if rays is None else {"rays": LIDAR_RAYS_FILE}))
     extra = {"pose_source": state.pose_source,
              "world_frame": "the first imported frame's LiDAR frame (x forward, y left, z up)",
              "tracks": state.object_report,

@@ -340,7 +340,8 @@ class RangeImage:
     hit: np.ndarray         # (H, W) bool
     index: np.ndarray       # (H, W) int64 source point index, -1 where none
     elevations: np.ndarray  # (H,) radians, descending (row 0 = top beam)
-    method: str             # beam assignment: 'scan_order', 'elevation' or 'table'
+    method: str             # beam assignment: 'scan_order', 'elevation', 'table' or 'rays'
+    rays: np.ndarray | None = None   # (W, 3) unit directions of an explicit pattern (H = 1)
 
     @property
     def shape(self):
@@ -351,7 +352,10 @@ class RangeImage:
         return column_azimuth(self.hit.shape[1])
 
     def directions(self) -> np.ndarray:
-        """(H, W, 3) unit ray directions through the pixel centres."""
+        """(H, W, 3) unit ray directions through the pixel centres (the
+        pattern's rays for an explicit pattern)."""
+        if self.rays is not None:
+            return np.asarray(self.rays, np.float64)[None].copy()
         e = self.elevations[:, None]
         a = self.azimuths[None, :]
         return np.stack(np.broadcast_arrays(np.cos(e) * np.cos(a),
@@ -402,6 +406,53 @@ def range_image(points, intensity, width: int = 2048, n_beams: int = 64,
     img_i[hit] = intensity[index[hit]]
     img_r[hit] = rng[index[hit]]
     return RangeImage(img_i, img_r, hit, index, elevations, used)
+
+
+#: Largest angle (radians) between a point's direction and the pattern ray it
+#: is assigned to in :func:`ray_image`.
+RAY_TOLERANCE = 2e-3
+
+
+def ray_image(points, intensity, rays, elevations, tolerance: float = RAY_TOLERANCE) -> RangeImage:
+    """A sweep of an explicit ray pattern as a ``1 x N`` range image: pixel
+    ``j`` holds the nearest return along pattern ray ``j`` (``rays``: (N, 3)
+    sensor-frame directions, the ``lidar`` sensor's film in ``rays`` mode).
+
+    Points farther than ``tolerance`` radians from every ray are dropped.
+    """
+    import cv2
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    intensity = np.asarray(intensity, np.float32).reshape(-1)
+    if points.shape[0] != intensity.shape[0]:
+        raise ValueError("points and intensity differ in length")
+    dirs = np.asarray(rays, np.float64).reshape(-1, 3)
+    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    n = dirs.shape[0]
+    rng = np.linalg.norm(points, axis=1)
+    ok = rng > 1e-6
+    ray = np.full(points.shape[0], -1, np.int64)
+    if ok.any():
+        index = cv2.flann_Index(np.ascontiguousarray(dirs, np.float32),
+                                {"algorithm": 4, "leaf_max_size": 10})   # exact k-d tree
+        q = np.ascontiguousarray(points[ok] / rng[ok, None], np.float32)
+        idx, d2 = index.knnSearch(q, 1, params={"checks": -1})
+        # Chord length ~ angle at these scales.
+        near = np.sqrt(np.maximum(d2[:, 0], 0.0)) <= tolerance
+        ray[np.nonzero(ok)[0][near]] = idx[near, 0]
+    sel = np.nonzero(ray >= 0)[0]
+    order = sel[np.lexsort((rng[sel], ray[sel]))]
+    first = np.ones(order.size, bool)
+    first[1:] = ray[order][1:] != ray[order][:-1]
+    keep = order[first]
+    index = np.full(n, -1, np.int64)
+    index[ray[keep]] = keep
+    hit = index >= 0
+    img_i = np.zeros(n, np.float32)
+    img_r = np.zeros(n, np.float32)
+    img_i[hit] = intensity[index[hit]]
+    img_r[hit] = rng[index[hit]]
+    return RangeImage(img_i[None], img_r[None], hit[None], index[None],
+                      np.asarray(elevations, np.float64), "rays", dirs)
 
 
 # ----------------------------------------------------------------------------

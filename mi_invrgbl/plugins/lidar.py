@@ -34,7 +34,8 @@ Spinning LiDAR (:monosp:`lidar`)
  * - rays
    - |string|
    - Path to a ``.npy`` array of shape (N, 6): ray origins (3) and directions
-     (3) in the sensor frame, for scan patterns that are not a grid; or (N, 7)
+     (3) in the sensor frame (a relative path is resolved against the scene's
+     folder), for scan patterns that are not a grid; or (N, 7)
      whose last column is each ray's beam. The film is then N x 1 and pixel
      ``i`` is ray ``i``. Without the beam column, a ray's beam is found from
      its elevation (rows of the pattern; a pattern without rows is one beam,
@@ -158,6 +159,11 @@ def _parse_elevations(text: str) -> np.ndarray:
 
 
 def _load_rays(path: str) -> np.ndarray:
+    import os
+    if not os.path.isabs(path):
+        # Relative to the scene's folder (on the file resolver while a scene
+        # file loads), as Mitsuba resolves its own file names.
+        path = str(mi.file_resolver().resolve(path))
     try:
         rays = np.load(path)
     except Exception as exc:

@@ -63,6 +63,9 @@ def camera_sensor(name, index, camera, camera_to_world) -> ET.Element:
 
 
 def lidar_sensor(name, index, lidar, lidar_to_world, far_clip=120.0) -> ET.Element:
+    if lidar.extra.get("rays"):      # an explicit ray pattern (file next to the scene)
+        return xml.lidar_rays_sensor(name, lidar.extra["rays"], lidar.azimuth_steps,
+                                     lidar_to_world, far_clip, seed=index)
     return xml.lidar_sensor(name, lidar.elevations_deg, lidar.azimuth_steps, lidar_to_world,
                             far_clip, seed=index)
 

@@ -36,9 +36,9 @@ from ..errors import UserError, mitsuba_message
 
 #: Names of ``<string>`` parameters that hold a file path.
 PATH_PARAMETERS = ("filename", "rays")
-#: Of those, the ones Mitsuba resolves against the XML's folder. The ``lidar``
-#: sensor opens ``rays`` itself (relative to the working directory), so that
-#: one stays absolute in written files.
+#: Of those, the ones written relative to the XML's folder. The ``lidar``
+#: sensor's ``rays`` file is not copied beside a scene written elsewhere (a
+#: fit's PLYs are), so that one stays absolute in written files.
 RELATIVE_PARAMETERS = ("filename",)
 #: Emitter types that make up a scene's sky and sun (replaced by relighting).
 SKY_TYPES = ("shsun", "constant", "envmap", "sunsky", "sky", "sun", "directional")
@@ -65,7 +65,8 @@ class SceneDoc:
         """Parse ``path``; one :class:`UserError` naming the file if that fails.
 
         With ``resolve_paths`` (the default) file paths inside become absolute;
-        without, they are kept as written (a copy written beside its PLYs).
+        without, the :data:`RELATIVE_PARAMETERS` ones are kept as written (a
+        copy written beside its PLYs) and only the others become absolute.
         """
         if not os.path.isfile(path):
             raise UserError("%s: scene file not found" % path)
@@ -78,8 +79,8 @@ class SceneDoc:
             raise UserError("%s: not a Mitsuba scene (root element is <%s>, not <scene>)"
                             % (path, root.tag))
         doc = SceneDoc(root, path)
-        if resolve_paths:
-            doc._map_paths(lambda value: _absolute(value, doc.folder))
+        doc._map_paths(lambda value: _absolute(value, doc.folder),
+                       None if resolve_paths else RELATIVE_PARAMETERS)
         return doc
 
     def copy(self) -> "SceneDoc":
@@ -123,9 +124,10 @@ class SceneDoc:
             written.append(diff_path)
         return written
 
-    def _map_paths(self, fn):
+    def _map_paths(self, fn, skip=None):
         for elem in _path_elements(self.root):
-            elem.set("value", fn(elem.get("value")))
+            if skip is None or elem.get("name") not in skip:
+                elem.set("value", fn(elem.get("value")))
 
     # -------------------------------------------------------------- queries
     def children(self, tag: str, types=None) -> list[ET.Element]:
@@ -368,6 +370,15 @@ def lidar_sensor(ident, elevations_deg, azimuth_steps, to_world, far_clip=120.0,
     return element("sensor", "lidar", ident, [
         param("string", "elevations", elev), param("float", "far_clip", "%g" % far_clip),
         transform(to_world), sampler(1, seed), film(azimuth_steps, len(elevations_deg))])
+
+
+def lidar_rays_sensor(ident, rays_file, n_rays, to_world, far_clip=120.0,
+                      seed=None) -> ET.Element:
+    """The package's ``lidar`` sensor in ``rays`` mode: an ``n_rays`` x 1 film,
+    the pattern read from ``rays_file`` (relative to the scene's folder)."""
+    return element("sensor", "lidar", ident, [
+        param("string", "rays", rays_file), param("float", "far_clip", "%g" % far_clip),
+        transform(to_world), sampler(1, seed), film(n_rays, 1)])
 
 
 def shsun_emitter(ident, sh, order, sun_direction, sun_irradiance,
