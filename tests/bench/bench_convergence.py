@@ -260,8 +260,8 @@ def _panel(img, x0, y0, w, h, series, title, ylabel, xmax):
                     cv2.line(img, pa, pb, colour, 2, cv2.LINE_AA)
             else:
                 cv2.line(img, px(*a), px(*b), colour, 2, cv2.LINE_AA)
-        for p in pts:
-            cv2.circle(img, px(*p), 4, colour, -1, cv2.LINE_AA)
+        for p in pts:      # baselines hollow
+            cv2.circle(img, px(*p), 4, colour, 1 if dashed else -1, cv2.LINE_AA)
         cv2.putText(img, label, (x0 + w - 150, y0 + 18 + 16 * k), cv2.FONT_HERSHEY_SIMPLEX,
                     0.42, colour, 1, cv2.LINE_AA)
 
