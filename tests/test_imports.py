@@ -92,7 +92,7 @@ def imports(path: Path):
         if isinstance(node, ast.Import):
             for alias in node.names:
                 if alias.name.split(".")[0] == "mi_invrgbl":
-                    yield node.lineno, alias.name
+                    yield node.lineno, alias.name, False
         elif isinstance(node, ast.ImportFrom):
             if node.level:
                 base = package.split(".")
@@ -104,9 +104,9 @@ def imports(path: Path):
                 continue
             if node.module is None:       # from . import a, b: each a module or a name
                 for alias in node.names:
-                    yield node.lineno, target + "." + alias.name
+                    yield node.lineno, target + "." + alias.name, True
             else:
-                yield node.lineno, target
+                yield node.lineno, target, False
 
 
 def package_modules():
@@ -118,7 +118,7 @@ def violations():
     for path in package_modules():
         source = module_name(path)
         src_part, src_rank = layer(source)
-        for line, target in imports(path):
+        for line, target, _ in imports(path):
             found = layer(target)
             if found is None or (source, target) in PENDING:
                 continue
@@ -144,7 +144,7 @@ def test_imports_run_downward_only():
 
 
 def test_pending_moves_are_still_pending():
-    made = {(module_name(p), target) for p in package_modules() for _, target in imports(p)}
+    made = {(module_name(p), target) for p in package_modules() for _, target, _ in imports(p)}
     done = [pair for pair in PENDING if pair not in made]
     assert not done, "no longer imported, delete from PENDING: %s" % done
 
@@ -180,27 +180,12 @@ def missing_modules():
     import left behind, often inside a function where nothing runs it)."""
     out = []
     for path in package_modules():
-        module = module_name(path)
-        package = module if path.name == "__init__.py" else module.rpartition(".")[0]
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
-            names = []
-            if isinstance(node, ast.Import):
-                names = [a.name for a in node.names if a.name.split(".")[0] == "mi_invrgbl"]
-            elif isinstance(node, ast.ImportFrom):
-                if node.level:
-                    base = package.split(".")
-                    base = base[:len(base) - (node.level - 1)]
-                    target = ".".join(base + ([node.module] if node.module else []))
-                elif node.module and node.module.split(".")[0] == "mi_invrgbl":
-                    target = node.module
-                else:
-                    continue
-                # ``from X import a``: X must exist (``a`` may be a module or a name).
-                names = [target]
-            for name in names:
-                if not _module_exists(name):
-                    out.append("%s (%s:%d) imports %s, which does not exist"
-                               % (module, path.relative_to(PACKAGE.parent), node.lineno, name))
+        for line, target, maybe_name in imports(path):
+            # ``from . import a``: ``a`` may be a name of the package, not a module.
+            if _module_exists(target) or (maybe_name and _module_exists(target.rpartition(".")[0])):
+                continue
+            out.append("%s (%s:%d) imports %s, which does not exist"
+                       % (module_name(path), path.relative_to(PACKAGE.parent), line, target))
     return out
 
 
