@@ -111,6 +111,33 @@ class TriangulatedPoints:
 # Features and matches
 # ----------------------------------------------------------------------------
 
+class _PointBatches:
+    """Accepted points of the sparse and the dense triangulation, batch by
+    batch, turned into one :class:`TriangulatedPoints` at the end."""
+
+    KEYS = ("points", "colours", "views", "first", "reproj", "parallax", "vdir", "depth")
+
+    def __init__(self):
+        self.parts = {k: [] for k in self.KEYS}
+
+    def add(self, X, colours, views, first, reproj, parallax, rays, dist):
+        """``rays`` (N, V, 3) unit directions point -> camera, ``dist`` (N, V)."""
+        vdir = rays.mean(axis=1)
+        vdir /= np.maximum(np.linalg.norm(vdir, axis=1, keepdims=True), 1e-12)
+        for key, value in zip(self.KEYS, (X, colours, views, first, reproj, parallax, vdir,
+                                          dist.min(axis=1))):
+            self.parts[key].append(value)
+
+    def result(self, frames_used) -> "TriangulatedPoints":
+        def cat(key, shape):
+            return np.concatenate(self.parts[key]) if self.parts[key] else np.zeros(shape)
+        return TriangulatedPoints(cat("points", (0, 3)), np.clip(cat("colours", (0, 3)), 0, 1),
+                                  cat("views", (0,)).astype(np.int64),
+                                  cat("first", (0,)).astype(np.int64), cat("reproj", (0,)),
+                                  cat("parallax", (0,)), cat("vdir", (0, 3)), cat("depth", (0,)),
+                                  frames_used=list(frames_used))
+
+
 def detect(image_rgb: np.ndarray, max_features: int):
     """SIFT keypoints ``(N, 2)`` float64 pixel coordinates and descriptors
     ``(N, 128)`` float32 of an RGB image (uint8 or float in [0, 1])."""
@@ -296,8 +323,7 @@ def triangulate_frames(load_image: Callable[[int], np.ndarray], cam_to_world: np
 
     w2c_all = np.linalg.inv(cam_to_world)
     centres = cam_to_world[:, :3, 3]
-    out = {k: [] for k in ("points", "colours", "views", "first", "reproj", "parallax",
-                           "vdir", "depth")}
+    out = _PointBatches()
     node_sel = good_track[track_of]
     order = np.lexsort((node_frame[node_sel], track_of[node_sel]))
     t_ids = track_of[node_sel][order]
@@ -342,25 +368,10 @@ def triangulate_frames(load_image: Callable[[int], np.ndarray], cam_to_world: np
                 rows = np.nonzero(sel)[0]
                 col[rows] += _bilinear(linear[int(i)], xy_ok[sel])
             col /= V
-            vdir = rays[ok].mean(axis=1)
-            vdir /= np.maximum(np.linalg.norm(vdir, axis=1, keepdims=True), 1e-12)
-            out["points"].append(X[ok])
-            out["colours"].append(col)
-            out["views"].append(np.full(int(ok.sum()), V))
-            out["first"].append(fr[ok, 0])
-            out["reproj"].append(err[ok])
-            out["parallax"].append(parallax[ok])
-            out["vdir"].append(vdir)
-            out["depth"].append(dist[ok].min(axis=1))
+            out.add(X[ok], col, np.full(int(ok.sum()), V), fr[ok, 0], err[ok], parallax[ok],
+                    rays[ok], dist[ok])
 
-    def cat(key, shape):
-        return np.concatenate(out[key]) if out[key] else np.zeros(shape)
-
-    res = TriangulatedPoints(cat("points", (0, 3)), np.clip(cat("colours", (0, 3)), 0, 1),
-                             cat("views", (0,)).astype(np.int64),
-                             cat("first", (0,)).astype(np.int64), cat("reproj", (0,)),
-                             cat("parallax", (0,)), cat("vdir", (0, 3)), cat("depth", (0,)),
-                             frames_used=frames)
+    res = out.result(frames)
     res.stats = {"keypoints": int(n_nodes), "matches": int(n_raw),
                  "epipolar_inliers": int(n_epi), "tracks": int(good_track.sum()),
                  "points": len(res)}
@@ -406,7 +417,7 @@ def dense_frames(load_image: Callable[[int], np.ndarray], cam_to_world: np.ndarr
                 else img.astype(np.float32)
         return gray[i]
 
-    out = {k: [] for k in ("points", "colours", "first", "reproj", "parallax", "vdir", "depth")}
+    out = _PointBatches()
     n_cand = 0
     pairs = []
     for pos, a in enumerate(frames):
@@ -460,24 +471,12 @@ def dense_frames(load_image: Callable[[int], np.ndarray], cam_to_world: np.ndarr
         if not keep.any():
             continue
         col = 0.5 * (_bilinear(linear[a], xa[keep]) + _bilinear(linear[b], xb[keep]))
-        vdir = rays[keep].mean(axis=1)
-        vdir /= np.maximum(np.linalg.norm(vdir, axis=1, keepdims=True), 1e-12)
-        out["points"].append(X[keep])
-        out["colours"].append(col)
-        out["first"].append(np.full(int(keep.sum()), a))
-        out["reproj"].append(err[keep])
-        out["parallax"].append(parallax[keep])
-        out["vdir"].append(vdir)
-        out["depth"].append(dist[keep].min(axis=1))
+        n_keep = int(keep.sum())
+        out.add(X[keep], col, np.full(n_keep, 2), np.full(n_keep, a), err[keep], parallax[keep],
+                rays[keep], dist[keep])
 
-    def cat(key, shape):
-        return np.concatenate(out[key]) if out[key] else np.zeros(shape)
-
-    n = sum(len(p) for p in out["points"])
-    res = TriangulatedPoints(cat("points", (0, 3)), np.clip(cat("colours", (0, 3)), 0, 1),
-                             np.full(n, 2, np.int64), cat("first", (0,)).astype(np.int64),
-                             cat("reproj", (0,)), cat("parallax", (0,)), cat("vdir", (0, 3)),
-                             cat("depth", (0,)), frames_used=sorted(gray))
+    res = out.result(sorted(gray))
+    n = len(res)
     res.stats = {"flow_pixels": int(n_cand), "points": n}
     if log is not None:
         log("[triangulate] dense flow: %d pixels of %d frame pairs -> %d points"
