@@ -70,9 +70,10 @@ def choose_lighting(ctx: FitState) -> LightingChoice:
             for name, sid in ctx.model.shape_ids.items():
                 m = ids == sid
                 acc = weight.setdefault(name, np.zeros(ctx.model.nodes[name].count, np.float64))
-                np.add.at(acc, prims[m], ww[m])
+                acc += np.bincount(prims[m], ww[m], minlength=acc.shape[0])
                 col = seen_colour.setdefault(name, np.zeros((ctx.model.nodes[name].count, 3)))
-                np.add.at(col, prims[m], ww[m, None] * pix[m])
+                for k in range(3):
+                    col[:, k] += np.bincount(prims[m], ww[m] * pix[m, k], minlength=col.shape[0])
             sky = (np.array(t_after) > 0.95) & ~np.array(hl.surface_valid)
             if sky.any():
                 d = np.stack([np.array(f.camera.rays.d[k]) for k in range(3)], 1)[sky]
@@ -138,10 +139,12 @@ def choose_lighting(ctx: FitState) -> LightingChoice:
 def log_lighting(ctx: FitState, choice: LightingChoice, seconds):
     s = choice.report["sun"]
     ctx.log("[fit] lighting: sun %s (best direction %s explains %.1f %% of within-surface "
-            "shading, %.1f %% beyond sky occlusion, typical direction %.1f %%; sun/sky %.2f); "
+            "shading, %.1f %% on patches it was not chosen on, %.1f %% beyond sky occlusion, "
+            "typical direction %.1f %%; sun/sky %.2f); "
             "SH order %d; %.1f s" % ("used" if choice.use_sun else "not used",
                                      np.round(s.get("direction", [0, 0, 1]), 2).tolist(),
                                      100 * s.get("gain", float("nan")),
+                                     100 * s.get("cv_gain", float("nan")),
                                      100 * s.get("gain_over_sky", float("nan")),
                                      100 * s.get("median_gain", float("nan")),
                                      s.get("sun_to_sky", float("nan")), choice.sh_order, seconds))

@@ -42,7 +42,7 @@ def seen_weight(table, frozen_hits):
     w = np.zeros(table.total, np.float64)
     for fh in frozen_hits:
         g = np.array(table.global_index(fh.node_ids, fh.prims))
-        np.add.at(w, g, np.array(fh.weight, np.float64))
+        w += np.bincount(g, np.array(fh.weight, np.float64), minlength=table.total)
     return w
 
 

@@ -80,10 +80,10 @@ def frame_statistics(scene, rays, max_hits=64, min_transmittance=1e-4, tolerance
     keep = colour_off >= tolerance
     log_t = np.where(keep, np.log1p(-alpha), 0.0)
     w_kept = keep * alpha * np.exp(_segment_exclusive_cumsum(log_t, ray))
-    t_kept = np.zeros(n_rays)
-    np.add.at(t_kept, ray, log_t)
+    t_kept = np.bincount(ray, log_t, minlength=n_rays)
     revealed = np.exp(t_kept)[:, None] * sky_rays
-    np.add.at(revealed, ray, w_kept[:, None] * c)
+    for k in range(3):
+        revealed[:, k] += np.bincount(ray, w_kept * c[:, k], minlength=n_rays)
     behind = np.linalg.norm(revealed - sky_rays, axis=1) / np.maximum(np.linalg.norm(sky_rays, axis=1), 1e-3)
     # A ray cut off at max_hits or min_transmittance never showed what is
     # behind its last hits, and one ending on a mesh shows the mesh: no
@@ -101,11 +101,12 @@ def accumulate(acc, shape_ids, stats):
     for name, sid in shape_ids.items():
         m = ids == sid
         a = acc[name]
-        np.add.at(a[:, 0], prims[m], w[m])
-        np.add.at(a[:, 1], prims[m], w[m] * c_off[m])
+        n = a.shape[0]
+        a[:, 0] += np.bincount(prims[m], w[m], minlength=n)
+        a[:, 1] += np.bincount(prims[m], w[m] * c_off[m], minlength=n)
         # One ray without evidence (infinite mismatch) keeps the Gaussian;
         # a zero-weight hit adds nothing (not 0 x inf).
-        np.add.at(a[:, 2], prims[m], np.where(w[m] > 0, w[m] * b_off[m], 0.0))
+        a[:, 2] += np.bincount(prims[m], np.where(w[m] > 0, w[m] * b_off[m], 0.0), minlength=n)
 
 
 def lookalike_masks(acc, tolerance=0.15, min_weight=0.05):

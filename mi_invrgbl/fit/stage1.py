@@ -113,19 +113,24 @@ class Stage1:
                 "%s -%d +%d clone +%d split = %d" % (n, *r) for n, r in report.items())))
 
     def _accumulate_gradients(self):
-        # Positional gradient magnitude per Gaussian, for densification.
+        # Positional gradient magnitude per Gaussian, for densification. Summed
+        # on the device and read back only when densifying: a read-back per
+        # iteration would wait for the device every step.
         for name, node in self.model.nodes.items():
             key = "%s.%s" % (name, BY_NAME["center"].variable)
             if key not in self.opt.variables:
                 continue
-            g = np.array(dr.grad(self.opt.adam[key]), np.float32).reshape(-1, 3)
-            if g.shape[0] != node.count:
+            g = dr.grad(self.opt.adam[key])
+            if dr.width(g) != 3 * node.count:
                 continue
-            acc = self.grad_accum.setdefault(name, [np.zeros(node.count, np.float32),
-                                                    np.zeros(node.count, np.float32)])
-            norm = np.linalg.norm(g, axis=1)
-            acc[0] += norm
-            acc[1] += norm > 0
+            idx = dr.arange(mi.UInt32, node.count) * 3
+            norm = dr.sqrt(sum(dr.square(dr.gather(mi.Float, g, idx + k)) for k in range(3)))
+            acc = self.grad_accum.get(name)
+            if acc is None or dr.width(acc[0]) != node.count:
+                acc = [dr.zeros(mi.Float, node.count), dr.zeros(mi.Float, node.count)]
+            acc = [acc[0] + norm, acc[1] + dr.select(norm > 0, 1.0, 0.0)]
+            dr.eval(acc[0], acc[1])
+            self.grad_accum[name] = acc
 
     def prune_sky_lookalikes(self):
         """Remove the Gaussians that only stand in for the sky
@@ -168,6 +173,8 @@ class Stage1:
             cloud.albedo = colour
             keep = cloud.opacities > cfg.prune_opacity
             acc = self.grad_accum.get(name)
+            if acc is not None:
+                acc = [np.array(acc[0], np.float32), np.array(acc[1], np.float32)]
             grow = np.zeros(len(cloud), bool)
             if acc is not None and acc[0].shape[0] == len(cloud):
                 mean_grad = acc[0] / np.maximum(acc[1], 1)

@@ -24,27 +24,35 @@ def make_optimizer(values: dict, lrs: dict):
     return opt
 
 
-def grads_finite(opt) -> bool:
-    for key in opt.keys():
-        g = dr.grad(opt[key])
-        if dr.width(g) and not bool(dr.all(dr.isfinite(g), axis=None)):
-            return False
-    return True
+def _magnitude(value):
+    """Sum of absolute values as a width-1 Float, not read back: infinite or NaN
+    exactly when some entry is (or when the sum overflows, a diverging step too)."""
+    total = dr.sum(dr.abs(value), axis=None)
+    return total.array if isinstance(total, mi.TensorXf) else mi.Float(total)
 
 
 def safe_step(opt, loss, log, lr_scale_state: dict, what="step", before_step=None):
     """Back-propagate ``loss`` and step, unless the loss or a gradient is not
     finite: then nothing changes, learning rates are halved and False returned.
+
+    The loss and every gradient are checked with one reduction read back
+    once: on a GPU each read-back waits for the device, and one per variable
+    cost more than the step itself.
     """
-    value = float(loss[0]) if dr.width(loss) else 0.0
-    if not np.isfinite(value):
-        _lower(opt, log, lr_scale_state, "loss is %r" % value, what)
-        return False
+    if not dr.width(loss):
+        loss = mi.Float(0.0)
     # A term can be inert for a scene (no LiDAR scans: the LiDAR side gets no
     # gradient); that is not an error.
     dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
-    if not grads_finite(opt):
-        _lower(opt, log, lr_scale_state, "a gradient is not finite", what)
+    check = _magnitude(dr.detach(loss))
+    for key in opt.keys():
+        g = dr.grad(opt[key])
+        if dr.width(g):
+            check = check + _magnitude(g)
+    if not np.isfinite(check[0]):
+        value = float(loss[0])
+        _lower(opt, log, lr_scale_state, "loss is %r" % value if not np.isfinite(value)
+               else "a gradient is not finite", what)
         for key in opt.keys():
             dr.clear_grad(opt[key])
         return False
