@@ -390,6 +390,33 @@ def test_early_stop_and_budget_plan():
     assert position_lr_factor(0, 100) == 1.0 and abs(position_lr_factor(100, 100) - 0.01) < 1e-12
 
 
+def test_batch_probe_keeps_larger_batches_only_where_they_are_cheap():
+    import time
+    from mi_invrgbl.fit.budget import probe_batch_scale, MIN_STEPS
+
+    def machine(cost):
+        scale = [1]
+
+        def step(it):
+            time.sleep(cost(scale[0]))
+
+        def set_scale(k):
+            scale[0] = k
+        return step, set_scale, scale
+
+    # Overhead-bound (a GPU on small batches): 16x the rays for 1.2x the time.
+    step, set_scale, scale = machine(lambda k: 0.01 * (1 + 0.0125 * (k - 1)))
+    probe = probe_batch_scale(step, set_scale, 10, 60.0, 0.01)
+    assert probe.scale == 16 and scale[0] == 16 and probe.iterations_run == 6
+    # Proportional to the rays (a CPU): the configured batch stays.
+    step, set_scale, scale = machine(lambda k: 0.004 * k)
+    probe = probe_batch_scale(step, set_scale, 10, 60.0, 0.004)
+    assert probe.scale == 1 and scale[0] == 1 and probe.iterations_run == 3
+    # Cheap, but the share would leave too few steps: no larger batch.
+    step, set_scale, scale = machine(lambda k: 0.01)
+    assert probe_batch_scale(step, set_scale, 10, 0.01 * (MIN_STEPS - 1), 0.01).scale == 1
+
+
 @pytest.mark.slow
 def test_budget_sets_iterations_and_stops_in_time(scene_path, tmp_path):
     import csv

@@ -69,6 +69,49 @@ def plan_stage(name, seconds, seconds_per_iteration, done=0, batched=True) -> St
                      max(MIN_EVAL_INTERVAL, total // EVALUATIONS))
 
 
+#: Batch scales a budgeted stage 1 tries at its start, in order.
+PROBE_SCALES = (4, 16)
+#: A larger batch is kept when it gives this much more rays per second...
+PROBE_GAIN = 1.5
+#: ...and still leaves the stage this many steps in its share.
+MIN_STEPS = 300
+
+
+@dataclass
+class BatchProbe:
+    scale: int                    # batch size relative to the configured one
+    seconds_per_iteration: float  # at that scale
+    iterations_run: int           # iterations the probe ran (they are real steps)
+    timings: dict = field(default_factory=dict)   # scale -> seconds per iteration
+
+
+def probe_batch_scale(step, set_scale, first, seconds, spi1) -> BatchProbe:
+    """Size stage 1's batches from the machine: time ``step`` at each of
+    :data:`PROBE_SCALES` times the configured batch (``set_scale(k)`` sets it)
+    and keep the largest that gives :data:`PROBE_GAIN` times the rays per
+    second of the one before while :data:`MIN_STEPS` steps still fit in
+    ``seconds``. Where a step's cost is mostly per-call overhead (a GPU on
+    batches of a few thousand rays) four times the rays cost little more;
+    where it is proportional to the rays (a CPU) the configured batch stays.
+    """
+    best, spi, it = 1, spi1, first
+    timings = {1: spi1}
+    for k in PROBE_SCALES:
+        set_scale(k)
+        t = time.perf_counter()
+        for _ in range(TIMED):
+            step(it)
+            it += 1
+        spi_k = (time.perf_counter() - t) / TIMED
+        timings[k] = spi_k
+        if (k / spi_k) >= PROBE_GAIN * (best / spi) and seconds / spi_k >= MIN_STEPS:
+            best, spi = k, spi_k
+        else:
+            break
+    set_scale(best)
+    return BatchProbe(best, spi, it - first, timings)
+
+
 def position_lr_factor(it, total):
     """Stage 1's position learning rate factor at iteration ``it`` of ``total``."""
     return POSITION_LR_END ** min(1.0, it / max(total, 1))

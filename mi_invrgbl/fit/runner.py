@@ -36,7 +36,8 @@ import mitsuba as mi
 
 from ..physics.fields import BY_NAME
 from . import outputs
-from .budget import TIMED, Budget, EarlyStop, plan_stage, position_lr_factor, time_iterations
+from .budget import (TIMED, Budget, EarlyStop, plan_stage, position_lr_factor,
+                     probe_batch_scale, time_iterations)
 from .checkpoint import checkpoint_path, fingerprint, load_checkpoint, save_checkpoint
 from .config import FitConfig  # noqa: F401  (the fit's options, imported from here by callers)
 from .evaluate import score_stage1, score_stage2
@@ -117,11 +118,23 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
     if budget is not None and start == 0:
         t = time.perf_counter()
         start = 1 + TIMED
-        plan = plan_stage("stage 1", budget.share("stage 1"),
-                          time_iterations(s1.iteration, 1), done=start)
-        s1.batch_camera *= plan.batch_scale
-        s1.batch_lidar *= plan.batch_scale
-        state.selection.setdefault("budget", {})["stage 1"] = plan.as_dict()
+        spi = time_iterations(s1.iteration, 1)
+        base_camera, base_lidar = s1.batch_camera, s1.batch_lidar
+
+        def set_scale(k):
+            s1.batch_camera, s1.batch_lidar = base_camera * k, base_lidar * k
+        probe = probe_batch_scale(s1.iteration, set_scale, start, budget.share("stage 1"), spi)
+        start += probe.iterations_run
+        plan = plan_stage("stage 1", budget.share("stage 1") - (time.perf_counter() - t),
+                          probe.seconds_per_iteration, done=start)
+        set_scale(probe.scale * plan.batch_scale)
+        plan.batch_scale *= probe.scale
+        state.log("[fit] budget: stage 1 batch %d camera rays + %d LiDAR beams (%s s per step "
+                  "at %s times the configured batch)"
+                  % (s1.batch_camera, s1.batch_lidar, "/".join("%.3f" % v for v in probe.timings.values()),
+                     "/".join(str(k) for k in probe.timings)))
+        state.selection.setdefault("budget", {})["stage 1"] = dict(
+            plan.as_dict(), probe={str(k): round(v, 4) for k, v in probe.timings.items()})
         total = plan.iterations
         stop = early_stop(state, plan, t + budget.share("stage 1"),
                           lambda: score_stage1(state, state.validation_frames))
@@ -131,6 +144,11 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
             s1.after_step(it, total)
             s1.opt.scale_learning_rates(position_lr_factor(it, total),
                                         lambda v: isinstance(v, GaussianVariable) and v.field is position)
+    elif budget is not None:
+        # A resumed budgeted fit keeps the batch its plan chose.
+        k = int(state.selection.get("budget", {}).get("stage 1", {}).get("batch_scale", 1))
+        s1.batch_camera *= k
+        s1.batch_lidar *= k
     if total > start:
         train(state, StageRun("stage 1", s1.iteration,
                               lambda: (score_stage1(state, state.held_out_frames), float("nan")),
