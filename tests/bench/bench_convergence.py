@@ -71,8 +71,14 @@ def cli(variant, *args):
     return [sys.executable, "-m", "mi_invrgbl_main", "--variant", variant, *map(str, args)]
 
 
+def _env():
+    # The checkout first, then whatever the caller's PYTHONPATH holds (a
+    # machine may have the dependencies only there).
+    return dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+
+
 def run(cmd, log):
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env = _env()
     with open(log, "a") as f:
         f.write("$ " + " ".join(cmd) + "\n")
         f.flush()
@@ -84,9 +90,11 @@ def run(cmd, log):
 
 
 def has_budget_option(variant) -> bool:
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
     out = subprocess.run(cli(variant, "fit", "--help"), capture_output=True, text=True,
-                         env=env, cwd=ROOT)
+                         env=_env(), cwd=ROOT)
+    if out.returncode != 0:
+        raise SystemExit("mi-invrgbl fit --help failed (exit %d): %s"
+                         % (out.returncode, (out.stderr.strip().splitlines() or [""])[-1]))
     return "--budget" in out.stdout
 
 
