@@ -73,4 +73,5 @@ def train(state: FitState, run: StageRun, start, total):
         raise Interrupted() from None
     bar.close()
     state.times[run.name] = state.times.get(run.name, 0.0) + time.perf_counter() - t_stage
+    state.iterations[run.name] = it
     return it

@@ -126,6 +126,7 @@ def write_outputs(ctx, stage2, interrupted=False):
                      "angle_exponent": float(ctx.response.angle_exponent[0]),
                      "beam_gains": np.array(ctx.response.beam_gains).tolist()},
         "times_s": ctx.times,
+        "iterations": ctx.iterations,
         "wall_s": time.perf_counter() - ctx.t_start + ctx.wall_offset,
         "peak_rss_mb": peak_rss_mb(),
         "rollbacks": ctx.lr_state.get("rollbacks", 0),

@@ -62,6 +62,7 @@ class FitState:
     sun_visibility_learned: bool = False
     selection: dict = field(default_factory=dict)
     times: dict = field(default_factory=dict)
+    iterations: dict = field(default_factory=dict)   # stage -> last iteration run
     lr_state: dict = field(default_factory=dict)
     t_start: float = 0.0
     #: Wall time of the run a resumed fit continues.

@@ -185,8 +185,9 @@ def fit_budget(case, scene: Path, budget, variant, args, cal, log) -> Row:
     m = fit_metrics(out)
     mean, fit = m.get("mean", {}), m.get("fit", {})
     if n1 is None:
-        cfg = fit.get("config", {})
-        n1, n2 = cfg.get("stage1_iterations"), cfg.get("stage2_iterations")
+        # Iterations run (a budgeted stage may stop early), not the configured defaults.
+        ran = fit.get("iterations", {})
+        n1, n2 = ran.get("stage 1"), ran.get("stage 2")
     wall = fit.get("wall_s")
     return Row(case, budget, n1, n2, over, mean.get("psnr"), mean.get("ssim"),
                mean.get("albedo_rmse"), mean.get("normal_angle_deg"), mean.get("relight_psnr"),
