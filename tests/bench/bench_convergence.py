@@ -65,6 +65,7 @@ class Row:
     nn_intensity_rmse: float | None = None
     peak_mb: float | None = None
     wall_s: float | None = None
+    variant: str = ""
 
 
 def cli(variant, *args):
@@ -113,6 +114,17 @@ def prepare(case, work: Path, variant, log) -> Path:
             raise SystemExit(f"{data}: KITTI excerpt not found (skip it with --cases street)")
     run(cli(variant, "import", data, "-o", scene, *CASES[case]["import_args"]), log)
     return scene
+
+
+def iterations_run(log_csv: Path) -> dict:
+    """Last iteration of each stage in a fit's ``log.csv`` (fits that predate
+    the ``iterations`` entry of metrics.json)."""
+    import csv
+    out = {}
+    if log_csv.is_file():
+        for r in csv.DictReader(open(log_csv)):
+            out[r["stage"]] = max(out.get(r["stage"], 0), int(r["iteration"]))
+    return out
 
 
 def fit_metrics(out: Path) -> dict:
@@ -186,16 +198,16 @@ def fit_budget(case, scene: Path, budget, variant, args, cal, log) -> Row:
     mean, fit = m.get("mean", {}), m.get("fit", {})
     if n1 is None:
         # Iterations run (a budgeted stage may stop early), not the configured defaults.
-        ran = fit.get("iterations", {})
+        ran = fit.get("iterations") or iterations_run(out / "log.csv")
         n1, n2 = ran.get("stage 1"), ran.get("stage 2")
     wall = fit.get("wall_s")
     return Row(case, budget, n1, n2, over, mean.get("psnr"), mean.get("ssim"),
                mean.get("albedo_rmse"), mean.get("normal_angle_deg"), mean.get("relight_psnr"),
                mean.get("lidar_intensity_rmse"), mean.get("baseline_intensity_rmse"),
-               fit.get("peak_rss_mb"), wall)
+               fit.get("peak_rss_mb"), wall, variant)
 
 
-COLUMNS = [("case", "case", "%s"), ("budget_min", "budget [min]", "%g"),
+COLUMNS = [("case", "case", "%s"), ("variant", "variant", "%s"), ("budget_min", "budget [min]", "%g"),
            ("stage1", "stage 1 it", "%d"), ("stage2", "stage 2 it", "%d"),
            ("psnr", "PSNR [dB]", "%.2f"), ("ssim", "SSIM", "%.3f"),
            ("albedo_rmse", "albedo RMSE", "%.3f"), ("normal_deg", "normal err [deg]", "%.1f"),
@@ -282,20 +294,26 @@ def plot(rows, path: Path):
     img = np.full((380, 1180, 3), 255, np.uint8)
     xmax = max([r.wall_s / 60 for r in rows if r.wall_s] + [1.0]) * 1.1
     psnr, intensity, materials = [], [], []
+    variants = sorted({r.variant for r in rows})
     for case in CASES:
-        rs = sorted((r for r in rows if r.case == case and r.wall_s), key=lambda r: r.wall_s)
-        if not rs:
-            continue
-        c = COLOURS[case]
-        psnr.append((case, c, [(r.wall_s / 60, r.psnr) for r in rs], False))
-        intensity.append((case, c, [(r.wall_s / 60, r.intensity_rmse) for r in rs], False))
-        intensity.append((case + " NN", c, [(r.wall_s / 60, r.nn_intensity_rmse) for r in rs], True))
-        if any(r.albedo_rmse is not None for r in rs):
-            materials.append(("albedo RMSE", (20, 150, 20),
-                              [(r.wall_s / 60, r.albedo_rmse) for r in rs], False))
-            materials.append(("normal err / 100 deg", (120, 20, 160),
-                              [(r.wall_s / 60, None if r.normal_deg is None else r.normal_deg / 100)
-                               for r in rs], False))
+        for variant in variants:
+            rs = sorted((r for r in rows if r.case == case and r.variant == variant and r.wall_s),
+                        key=lambda r: r.wall_s)
+            if not rs:
+                continue
+            c = COLOURS[case] if variant == variants[0] else tuple(v // 2 for v in COLOURS[case])
+            name = case + ("" if len(variants) == 1 else " " + variant.split("_")[0])
+            psnr.append((name, c, [(r.wall_s / 60, r.psnr) for r in rs], False))
+            intensity.append((name, c, [(r.wall_s / 60, r.intensity_rmse) for r in rs], False))
+            intensity.append((name + " NN", c, [(r.wall_s / 60, r.nn_intensity_rmse) for r in rs],
+                              True))
+            if any(r.albedo_rmse is not None for r in rs):
+                dashed = variant != variants[0]
+                materials.append(("albedo RMSE" + name[len(case):], (20, 150, 20),
+                                  [(r.wall_s / 60, r.albedo_rmse) for r in rs], dashed))
+                materials.append(("normal err / 100 deg" + name[len(case):], (120, 20, 160),
+                                  [(r.wall_s / 60, None if r.normal_deg is None
+                                    else r.normal_deg / 100) for r in rs], dashed))
     _panel(img, 70, 40, 300, 270, psnr, "held-out PSNR", "dB", xmax)
     _panel(img, 460, 40, 300, 270, intensity, "LiDAR intensity RMSE", "RMSE", xmax)
     _panel(img, 850, 40, 300, 270, materials, "street materials (lower is better)", "", xmax)
@@ -316,7 +334,30 @@ def main(argv=None):
     ap.add_argument("--min-iterations", type=int, default=10)
     ap.add_argument("--reuse", action="store_true",
                     help="keep fits that already have an eval (re-print and re-plot)")
+    ap.add_argument("--merge", nargs="+", default=[], metavar="JSON",
+                    help="also tabulate and plot the rows of earlier runs' convergence.json "
+                         "(PATH or PATH:VARIANT, e.g. a GPU machine's); with no budgets "
+                         "given, run no fit")
     args = ap.parse_args(argv)
+    merged = []
+    for item in args.merge:
+        # PATH or PATH:VARIANT (for rows written before the variant column)
+        path, _, variant = item.rpartition(":") if not Path(item).is_file() else (item, "", "")
+        try:
+            rows_in = [Row(**r) for r in json.loads(Path(path).read_text())]
+        except (OSError, ValueError, TypeError) as e:
+            raise SystemExit(f"{path}: not a convergence.json ({e})")
+        for r in rows_in:
+            r.variant = r.variant or variant
+        merged += rows_in
+    if merged and not (args.budgets_opt or args.budgets):
+        work = Path(args.work).absolute()
+        work.mkdir(parents=True, exist_ok=True)
+        (work / "convergence.md").write_text(table(merged) + "\n")
+        plot(merged, work / "convergence.png")
+        print(table(merged))
+        print("written: %s, %s" % (work / "convergence.md", work / "convergence.png"))
+        return
     budgets = args.budgets_opt or args.budgets or [2, 8, 30, 60]
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
     for c in cases:
@@ -341,6 +382,7 @@ def main(argv=None):
         for b in sorted(budgets):
             rows.append(fit_budget(case, scene, b, args.variant, args, cal, log))
             print(table(rows), flush=True)
+    rows += merged
     text = table(rows)
     (work / "convergence.md").write_text(text + "\n")
     (work / "convergence.json").write_text(json.dumps([asdict(r) for r in rows], indent=1))
