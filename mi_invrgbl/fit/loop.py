@@ -38,13 +38,35 @@ def _log_name(term):
     return "drop" if term == "raydrop" else "prior" if term in ("nor", "mat") else term
 
 
+def record_point(state: FitState, run: StageRun, it, loss=float("nan"), terms=None):
+    """One row of ``log.csv``: wall time, losses and the progress scores.
+
+    Iteration 0 is a stage's starting point (stage 2: stage 1's geometry
+    under the initial materials and light), so the log shows what the stage
+    itself gains or loses."""
+    psnr, rmse = run.evaluate()
+    state.speed_log.add(
+        wall_s="%.2f" % (time.perf_counter() - state.t_start + state.wall_offset),
+        stage=run.name, iteration=it, loss="%.6g" % loss,
+        **{"loss_" + _log_name(k): "%.6g" % v for k, v in (terms or {}).items()},
+        heldout_psnr="%.3f" % psnr,
+        heldout_intensity_rmse=("%.5f" % rmse) if rmse == rmse else "",
+        peak_rss_mb="%.0f" % peak_rss_mb())
+
+
 def train(state: FitState, run: StageRun, start, total):
     """Run iterations ``start + 1 .. total``; returns the last one."""
     cfg = state.config
     bar = ProgressBar(run.name, total, start_at=start)
     t_stage = time.perf_counter()
     it = start
+
+    def record(it, loss=float("nan"), terms=None):
+        record_point(state, run, it, loss, terms)
+
     try:
+        if start == 0 and total > 0:
+            record(0)
         for it in range(start + 1, total + 1):
             loss, terms, _ = run.step(it)
             if run.after_step is not None:
@@ -52,14 +74,7 @@ def train(state: FitState, run: StageRun, start, total):
             bar.update(it, "loss %.4g" % loss)
             reason = run.stop(it) if run.stop is not None else None
             if it % cfg.eval_every == 0 or it == total or reason:
-                psnr, rmse = run.evaluate()
-                state.speed_log.add(
-                    wall_s="%.2f" % (time.perf_counter() - state.t_start + state.wall_offset),
-                    stage=run.name, iteration=it, loss="%.6g" % loss,
-                    **{"loss_" + _log_name(k): "%.6g" % v for k, v in terms.items()},
-                    heldout_psnr="%.3f" % psnr,
-                    heldout_intensity_rmse=("%.5f" % rmse) if rmse == rmse else "",
-                    peak_rss_mb="%.0f" % peak_rss_mb())
+                record(it, loss, terms)
             if cfg.checkpoint_every and it % cfg.checkpoint_every == 0:
                 run.checkpoint(run.name, it)
             if reason:

@@ -42,7 +42,7 @@ from .checkpoint import checkpoint_path, fingerprint, load_checkpoint, save_chec
 from .config import FitConfig  # noqa: F401  (the fit's options, imported from here by callers)
 from .evaluate import score_stage1, score_stage2
 from .init import init_materials, load_state, sh_mask
-from .loop import Interrupted, StageRun, train
+from .loop import Interrupted, StageRun, record_point, train
 from .model_selection import (LightingChoice, LobeChoice, choose_lidar_lobe, choose_lighting,
                               choose_render_samples, log_lighting)
 from .progress import SpeedErrorLog
@@ -114,8 +114,11 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
     if opt_state:
         restore_optimizer(s1.opt.adam, opt_state)
     total = planned(state, "stage 1", config.stage1_iterations)
-    after_step, stop = s1.after_step, None
+    run = StageRun("stage 1", s1.iteration,
+                   lambda: (score_stage1(state, state.held_out_frames), float("nan")),
+                   lambda name, it: checkpoint(name, it, s1.opt.adam), s1.after_step)
     if budget is not None and start == 0:
+        record_point(state, run, 0)   # before the timed iterations move it
         t = time.perf_counter()
         start = 1 + TIMED
         spi = time_iterations(s1.iteration, 1)
@@ -136,24 +139,22 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
         state.selection.setdefault("budget", {})["stage 1"] = dict(
             plan.as_dict(), probe={str(k): round(v, 4) for k, v in probe.timings.items()})
         total = plan.iterations
-        stop = early_stop(state, plan, t + budget.share("stage 1"),
-                          lambda: score_stage1(state, state.validation_frames))
+        run.stop = early_stop(state, plan, t + budget.share("stage 1"),
+                              lambda: score_stage1(state, state.validation_frames))
         position = BY_NAME["center"]
 
         def after_step(it, total):
             s1.after_step(it, total)
             s1.opt.scale_learning_rates(position_lr_factor(it, total),
                                         lambda v: isinstance(v, GaussianVariable) and v.field is position)
+        run.after_step = after_step
     elif budget is not None:
         # A resumed budgeted fit keeps the batch its plan chose.
         k = int(state.selection.get("budget", {}).get("stage 1", {}).get("batch_scale", 1))
         s1.batch_camera *= k
         s1.batch_lidar *= k
     if total > start:
-        train(state, StageRun("stage 1", s1.iteration,
-                              lambda: (score_stage1(state, state.held_out_frames), float("nan")),
-                              lambda name, it: checkpoint(name, it, s1.opt.adam), after_step, stop),
-              start, total)
+        train(state, run, start, total)
     if config.prune_sky_lookalikes:
         t = time.perf_counter()
         removed = s1.prune_sky_lookalikes()
@@ -168,8 +169,10 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
 def fit_materials(state: FitState, stage2, start, checkpoint, budget=None):
     """Stage 2 from iteration ``start``; returns the last iteration."""
     total = planned(state, "stage 2", state.config.stage2_iterations)
-    stop = None
+    run = StageRun("stage 2", stage2.iteration, lambda: score_stage2(stage2, state.held_out_frames),
+                   lambda name, it: checkpoint(name, it, stage2.opt.adam))
     if budget is not None and start == 0:
+        record_point(state, run, 0)   # before the timed iterations move it
         t = time.perf_counter()
         spi = time_iterations(stage2.iteration, 1)
         start = 1 + TIMED
@@ -186,13 +189,10 @@ def fit_materials(state: FitState, stage2, start, checkpoint, budget=None):
                       % (seconds, budget.share("stage 2"), t - budget.t_start))
         state.selection.setdefault("budget", {})["stage 2"] = plan.as_dict()
         total = plan.iterations
-        stop = early_stop(state, plan, t + seconds, lambda: validation_score(
+        run.stop = early_stop(state, plan, t + seconds, lambda: validation_score(
             *score_stage2(stage2, state.validation_frames)))
     if total > start:
-        return train(state, StageRun("stage 2", stage2.iteration,
-                                     lambda: score_stage2(stage2, state.held_out_frames),
-                                     lambda name, it: checkpoint(name, it, stage2.opt.adam),
-                                     stop=stop), start, total)
+        return train(state, run, start, total)
     return max(start, total)
 
 
