@@ -202,3 +202,18 @@ def test_frames_json_keeps_the_masks(scene_path, tmp_path):
     frames.save(tmp_path / "frames.json")
     again = Frames.load(tmp_path / "frames.json")
     assert again[2].masks == frames[2].masks
+
+
+def test_eval_scores_inside_and_outside_the_camera_mask():
+    from mi_invrgbl.eval.scoring import masked_image_metrics
+    from mi_invrgbl.io.kitti import srgb_to_linear
+    rng = np.random.default_rng(0)
+    observed = rng.uniform(0.2, 0.8, (12, 20, 3))
+    render = srgb_to_linear(observed).copy()
+    masked = np.zeros((12, 20), bool)
+    masked[3:9, 5:11] = True
+    render[masked] = 0.0                       # a moving truck the model left out
+    out = masked_image_metrics(render, observed, masked)
+    assert out["moving_fraction"] == pytest.approx(36 / 240)
+    assert out["psnr_static"] > 60
+    assert out["psnr_moving"] < 15

@@ -26,7 +26,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..errors import UserError
-from ..io.images import read_exr
+from ..io.images import read_exr, read_mask
 from ..io.kitti import srgb_to_linear
 from ..scene.frames import Frames
 
@@ -162,21 +162,6 @@ def _read_scan(path):
     rng = np.nan_to_num(ch["range"])
     hit = (ch["hit"] > 0.5) & np.isfinite(ch["range"]) & (rng > 0)
     return intensity, rng, hit
-
-
-def read_mask(path, shape, what) -> np.ndarray:
-    """A mask file as a bool array (True = excluded, i.e. > 127) of ``shape``
-    (rows, columns); a one-line :class:`UserError` when it is unreadable or
-    of another size. ``what`` names the grid it covers, for the message."""
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise UserError("%s: cannot read the mask" % path)
-    if img.ndim == 3:
-        img = img.max(axis=2)
-    if tuple(img.shape) != tuple(shape):
-        raise UserError("%s: mask is %dx%d (width x height) but the %s is %dx%d"
-                        % (path, img.shape[1], img.shape[0], what, shape[1], shape[0]))
-    return img > 127
 
 
 def _frame_mask(rec, kind, shape, what, log):
