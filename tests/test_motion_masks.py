@@ -217,3 +217,32 @@ def test_eval_scores_inside_and_outside_the_camera_mask():
     assert out["moving_fraction"] == pytest.approx(36 / 240)
     assert out["psnr_static"] > 60
     assert out["psnr_moving"] < 15
+
+
+def test_import_lists_the_masks_it_writes_and_fit_reads_them(tmp_path):
+    # io.importer writes io.motion's masks and lists them in frames.json;
+    # here a box of masked LiDAR points 8 m ahead of every frame's sensors.
+    from types import SimpleNamespace
+    from mi_invrgbl.io.importer import _write_motion_masks
+    from mi_invrgbl.scene.frames import Frames
+    path = build(str(tmp_path), n_frames=5, width=WIDTH, height=HEIGHT, columns=COLUMNS)
+    frames = Frames.load(path)
+    g = np.stack(np.meshgrid(np.linspace(-0.5, 0.5, 5), np.linspace(-1, 1, 5),
+                             np.linspace(-1.2, 0.0, 5)), -1).reshape(-1, 3)
+    pts = g + [8.0, 0.0, 0.0]                    # LiDAR frame (x forward, z up)
+    index = np.full((64, COLUMNS), -1, np.int64)
+    index[20:22, :len(pts) // 2] = np.arange(len(pts) // 2 * 2).reshape(2, -1)
+    n = len(frames)
+    state = SimpleNamespace(
+        motion=SimpleNamespace(masked=[np.ones(len(pts), bool)] * n, dynamic=None, tracks=[]),
+        scans=[(pts, None)] * n, poses=[f.lidar_to_world for f in frames],
+        cam_poses=[f.camera_to_world for f in frames], K=frames.camera.K, size=(WIDTH, HEIGHT),
+        range_images=[SimpleNamespace(shape=(64, COLUMNS), index=index)] * n, counts={})
+    assert _write_motion_masks(state, frames, tmp_path) == n
+    again = Frames.load(path)
+    assert again[3].masks["camera"] == tmp_path / "observations" / "motion_0003.png"
+    obs = _load(path)
+    for o in obs:
+        assert 0 < (~o.camera.valid()).mean() < 0.5        # the box's hull, not the frame
+        # every 2nd column kept: half of the 2 x 62 masked beams
+        assert (~o.lidar.valid()).sum() == len(pts) // 2
