@@ -246,3 +246,24 @@ def test_import_lists_the_masks_it_writes_and_fit_reads_them(tmp_path):
         assert 0 < (~o.camera.valid()).mean() < 0.5        # the box's hull, not the frame
         # every 2nd column kept: half of the 2 x 62 masked beams
         assert (~o.lidar.valid()).sum() == len(pts) // 2
+
+
+def test_sky_lookalike_statistics_leave_masked_pixels_out(state):
+    import warnings
+    from mi_invrgbl.fit.sky_lookalikes import accumulate, frame_statistics
+    frame = state.train_frames[0]
+    state.model.push(frame.poses, stage=1)
+    with dr.suspend_grad():
+        full = frame_statistics(state.scene, frame.camera.rays)
+        part = frame_statistics(state.scene, frame.camera.rays, valid=frame.camera.valid())
+    assert len(part[2]) == len(full[2]) and (part[2] <= full[2]).all()
+    assert 0.2 < part[2].sum() / full[2].sum() < 0.8      # the left half's hits weigh 0
+    # A masked hit on a ray without evidence behind it (mismatch inf) adds
+    # nothing, and no 0 x inf warning reaches the user.
+    acc = {"a": np.zeros((2, 3))}
+    stats = (np.array([7, 7], np.uint32), np.array([0, 1]), np.array([0.0, 0.5]),
+             np.zeros(2), np.array([np.inf, 0.1]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        accumulate(acc, {"a": 7}, stats)
+    assert np.array_equal(acc["a"][:, 2], [0.0, 0.05])

@@ -109,7 +109,7 @@ def accumulate(acc, shape_ids, stats):
         np.add.at(a[:, 1], prims[m], w[m] * c_off[m])
         # One ray without evidence (infinite mismatch) keeps the Gaussian;
         # a zero-weight hit adds nothing (not 0 x inf).
-        np.add.at(a[:, 2], prims[m], np.where(w[m] > 0, w[m] * b_off[m], 0.0))
+        np.add.at(a[:, 2], prims[m], w[m] * np.where(w[m] > 0, b_off[m], 0.0))
 
 
 def lookalike_masks(acc, tolerance=0.15, min_weight=0.05):
