@@ -7,7 +7,10 @@ with ``lidar_return``, and the renders are compared with the observations:
 
 * camera: PSNR and SSIM in sRGB. The observed images are 8-bit sRGB PNGs,
   so the linear render is converted with the sRGB curve, clipped to [0, 1]
-  and compared in [0, 1] (peak 1).
+  and compared in [0, 1] (peak 1). Where a frame has a camera motion mask
+  (``frames.json`` ``masks``), also the PSNR outside it (``psnr_static``),
+  inside it (``psnr_moving``: moving things no node models) and the masked
+  share of the pixels (``moving_fraction``).
 * LiDAR: intensity RMSE over the beams that return in the observation,
   range error (mean |dr| where both return), ray-drop accuracy (all beams),
   and the nearest-neighbour baseline's intensity RMSE on the same beams
@@ -48,6 +51,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UserError
+from ..io.images import read_mask
 from ..scene.frames import Frames, write_json
 from ..scene.loading import load_scene
 from ..scene.posing import set_frame
@@ -61,6 +65,7 @@ PSNR_CAP = 100.0
 
 #: Columns of the printed table: (key, header, format).
 TABLE = (("psnr", "PSNR", "%6.2f"), ("ssim", "SSIM", "%6.4f"),
+         ("psnr_static", "PSNR-st", "%7.2f"), ("psnr_moving", "PSNR-mv", "%7.2f"),
          ("lidar_intensity_rmse", "I-RMSE", "%7.4f"), ("baseline_intensity_rmse", "NN-RMSE", "%7.4f"),
          ("range_error", "range", "%6.3f"), ("ray_drop_accuracy", "drop-acc", "%8.4f"),
          ("raw_intensity_rmse", "I-raw", "%7.4f"), ("raw_baseline_intensity_rmse", "NN-raw", "%7.4f"),
@@ -88,6 +93,18 @@ def image_metrics(render_lin, observed_srgb):
                            observed_srgb.shape[0]))
     return {"psnr": min(M.psnr(pred, observed_srgb, 1.0), PSNR_CAP),
             "ssim": M.ssim(pred, observed_srgb, 1.0)}
+
+
+def masked_image_metrics(render_lin, observed_srgb, masked):
+    """PSNR outside (``psnr_static``) and inside (``psnr_moving``) a frame's
+    camera motion mask (``masked``: (H, W) bool, moving things no node
+    models), and the masked share of the pixels."""
+    pred = np.clip(M.linear_to_srgb(render_lin), 0.0, 1.0)
+    out = {"moving_fraction": float(masked.mean()),
+           "psnr_static": min(M.psnr(pred, observed_srgb, 1.0, mask=~masked[..., None]), PSNR_CAP)}
+    if masked.any():
+        out["psnr_moving"] = min(M.psnr(pred, observed_srgb, 1.0, mask=masked[..., None]), PSNR_CAP)
+    return out
 
 
 def lidar_metrics(pred, obs, baseline=None, sensor=None):
@@ -220,7 +237,11 @@ def score_frame(scene, frames, k, spp, cam_integ, lidar_integ, nn=None, gt_dir=N
                         % (frames.path, rec.camera, rec.index))
     cam = render_camera(scene, cam_sensor, spp, cam_integ)
     if rec.image is not None:
-        row.update(image_metrics(cam["rgb"], read_png(rec.image)))
+        observed = read_png(rec.image)
+        row.update(image_metrics(cam["rgb"], observed))
+        if rec.masks.get("camera") is not None and Path(rec.masks["camera"]).is_file():
+            row.update(masked_image_metrics(cam["rgb"], observed, read_mask(
+                rec.masks["camera"], observed.shape[:2], "image %s" % Path(rec.image).name)))
     if lidar_sensor is not None and rec.lidar_scan is not None:
         obs = read_channels(rec.lidar_scan, ["intensity", "range", "hit"], "LiDAR scan")
         pred = render_lidar(scene, lidar_sensor, lidar_integ)

@@ -1,6 +1,7 @@
 """Scores the fit reports while it runs: PSNR of the images and RMSE of the
 LiDAR intensities on a list of frames (held-out frames for the progress log,
-validation frames for model selection)."""
+validation frames for model selection), over the pixels and beams that
+count (:meth:`~.observations.Masked.valid`: motion masks left out)."""
 
 from __future__ import annotations
 
@@ -22,7 +23,8 @@ def score_stage1(state, frames):
             rgb, _, _ = camera_unlit(state.scene, f.camera.rays, state.config.max_hits,
                                      state.config.min_transmittance)
             img = np.stack([np.array(rgb[c]) for c in range(3)], axis=1)
-            vals.append(psnr(img, f.camera.image.reshape(-1, 3), srgb=True))
+            vals.append(psnr(img, f.camera.image.reshape(-1, 3), mask=f.camera.valid()[:, None],
+                             srgb=True))
     return float(np.mean(vals)) if vals else float("nan")
 
 
@@ -38,10 +40,11 @@ def score_stage2(stage2, frames, vals=None, **render):
             if "camera" in out:
                 c = out["camera"]["rgb"]
                 img = np.stack([np.array(c[k]) for k in range(3)], axis=1)
-                ps.append(psnr(img, f.camera.image.reshape(-1, 3), srgb=True))
+                ps.append(psnr(img, f.camera.image.reshape(-1, 3), mask=f.camera.valid()[:, None],
+                               srgb=True))
             if "lidar" in out:
                 pred = np.array(out["lidar"]["intensity"])
-                hit = f.lidar.hit.ravel()
+                hit = f.lidar.hit.ravel() & f.lidar.valid()
                 errs += float(np.sum((pred[hit] - f.lidar.intensity.ravel()[hit]) ** 2))
                 counts += int(hit.sum())
     return (float(np.mean(ps)) if ps else float("nan"),

@@ -62,13 +62,15 @@ def load_state(scene_path, config: FitConfig, log=print) -> FitState:
                 sky = SkyKeys(emitter, eid + ".sh", eid + ".sun_irradiance", eid + ".sun_direction")
     if sky is None:
         raise UserError("%s: the scene has no 'shsun' emitter to fit the sky and sun with" % scene_path)
-    observations = load_observations(scene, frames, config.fit_width, config.lidar_columns)
+    observations = load_observations(scene, frames, config.fit_width, config.lidar_columns,
+                                     log=log)
     train = [o for o in observations if not o.held_out]
     held_out = [o for o in observations if o.held_out]
     if not train:
         raise UserError("%s: every frame is held out; nothing to train on" % frames.path)
     train, validation = split_validation(train, config.validation_every)
-    seen = [o.lidar.intensity[o.lidar.hit] for o in train if o.lidar is not None]
+    seen = [o.lidar.intensity.ravel()[o.lidar.hit.ravel() & o.lidar.valid()]
+            for o in train if o.lidar is not None]
     seen = np.concatenate(seen) if seen else np.zeros(0)
     seen = seen[seen > 0]
     n_beams = frames.lidar.beams
@@ -115,7 +117,7 @@ def init_materials(ctx: FitState, frozen):
             continue
         fh = frozen.lidar[f.index]
         ray, nid, prim, w, tt = dominant_hit(fh)
-        hit = f.lidar.hit.ravel()[ray] & (w > 0.3)
+        hit = (f.lidar.hit.ravel() & f.lidar.valid())[ray] & (w > 0.3)
         ray, nid, prim, tt = ray[hit], nid[hit], prim[hit], tt[hit]
         d = np.stack([np.array(f.lidar.rays.d[k]) for k in range(3)], 1)[ray]
         gid = np.array([offsets[int(i)] for i in nid]) + prim if len(nid) else prim

@@ -66,7 +66,11 @@ def choose_lighting(ctx: FitState) -> LightingChoice:
             g = hitlib.eval_gaussian_hits(nodes, f.camera.rays, hl)
             w, t_after = hitlib.blend_weights(g)
             ids, prims, ww = np.array(g.node_ids), np.array(g.prims), np.array(w)
-            pix = f.camera.image.reshape(-1, 3)[np.array(g.ray)]
+            valid = f.camera.valid()
+            ray = np.array(g.ray)
+            # Masked pixels (moving things no node models) say nothing of the light.
+            ww = np.where(valid[ray], ww, 0.0)
+            pix = f.camera.image.reshape(-1, 3)[ray]
             for name, sid in ctx.model.shape_ids.items():
                 m = ids == sid
                 acc = weight.setdefault(name, np.zeros(ctx.model.nodes[name].count, np.float64))
@@ -74,7 +78,7 @@ def choose_lighting(ctx: FitState) -> LightingChoice:
                 col = seen_colour.setdefault(name, np.zeros((ctx.model.nodes[name].count, 3)))
                 for k in range(3):
                     col[:, k] += np.bincount(prims[m], ww[m] * pix[m, k], minlength=col.shape[0])
-            sky = (np.array(t_after) > 0.95) & ~np.array(hl.surface_valid)
+            sky = (np.array(t_after) > 0.95) & ~np.array(hl.surface_valid) & valid
             if sky.any():
                 d = np.stack([np.array(f.camera.rays.d[k]) for k in range(3)], 1)[sky]
                 sky_dirs.append(d)

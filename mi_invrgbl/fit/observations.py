@@ -6,6 +6,14 @@ centres of that grid, so one traced hit list per frame serves every
 iteration while geometry is frozen. LiDAR scans are the range images written
 by ``import`` (one pixel per beam of the frame's ``lidar`` sensor); columns may
 be thinned by ``lidar_stride`` for speed.
+
+Masks (a frame record's ``masks``: ``camera`` over the image, ``lidar`` over
+the range image; 8-bit, 255 = exclude, written by ``import`` for moving things
+it could not model) mark pixels and beams no loss, validation score or
+initialisation may use. A camera mask is resized to the fit's grid with any
+coverage kept (a masked pixel stays masked); a LiDAR mask is thinned with the
+scan's columns. :meth:`Masked.valid` is the one answer to "which pixels of
+this frame count".
 """
 
 from __future__ import annotations
@@ -18,23 +26,68 @@ import drjit as dr
 import mitsuba as mi
 
 from ..errors import UserError
-from ..io.images import read_exr
+from ..io.images import read_exr, read_mask
 from ..io.kitti import srgb_to_linear
 from ..scene.frames import Frames
 
 
+class Masked:
+    """Which pixels (camera) or kept beams (LiDAR) of an observation count.
+
+    ``excluded`` is ``None`` (nothing masked) or a bool array over the
+    observation's grid, True where a mask leaves the pixel or beam out."""
+
+    excluded: np.ndarray | None
+
+    def _size(self) -> int:
+        raise NotImplementedError
+
+    def valid(self) -> np.ndarray:
+        """Flat (row-major) bool per pixel or beam: True where it counts."""
+        if self.excluded is None:
+            return np.ones(self._size(), bool)
+        return ~self.excluded.ravel()
+
+    def valid_index(self) -> np.ndarray:
+        """Flat indices (uint32) of the pixels or beams that count: what a
+        random batch draws from."""
+        if getattr(self, "_valid_index", None) is None:
+            self._valid_index = np.flatnonzero(self.valid()).astype(np.uint32)
+        return self._valid_index
+
+    def valid_mask(self):
+        """``mi.Bool`` per pixel or beam for a loss's ``mask``, or ``None``
+        when nothing is excluded."""
+        if self.excluded is None:
+            return None
+        if getattr(self, "_valid_mask", None) is None:
+            self._valid_mask = mi.Bool(self.valid())
+        return self._valid_mask
+
+    def restrict(self, mask):
+        """``mask`` (a per-pixel ``mi.Bool``, or ``None`` for all) and the valid ones."""
+        valid = self.valid_mask()
+        if valid is None:
+            return mask
+        return valid if mask is None else mask & valid
+
+
 @dataclass
-class CameraObservation:
+class CameraObservation(Masked):
     sensor: object
     image: np.ndarray          # (H, W, 3) linear RGB
     width: int
     height: int
     rays: mi.Ray3f = None      # one per pixel, row-major
     priors: dict = field(default_factory=dict)  # kind -> (H, W, C) arrays
+    excluded: np.ndarray | None = None          # (H, W) bool, True = left out
+
+    def _size(self) -> int:
+        return self.width * self.height
 
 
 @dataclass
-class LidarObservation:
+class LidarObservation(Masked):
     sensor: object
     intensity: np.ndarray      # (B, W') observed, [0, 1]
     range: np.ndarray          # (B, W')
@@ -42,6 +95,10 @@ class LidarObservation:
     rays: mi.Ray3f = None      # one per kept pixel, row-major
     row: mi.UInt32 = None
     near: mi.Float = None      # distance from the sensor to each ray origin
+    excluded: np.ndarray | None = None          # (B, W') bool, True = left out
+
+    def _size(self) -> int:
+        return self.intensity.size
 
 
 @dataclass
@@ -107,6 +164,42 @@ def _read_scan(path):
     return intensity, rng, hit
 
 
+def _frame_mask(rec, kind, shape, what, log):
+    """The frame's ``kind`` mask at its file's resolution, or None (not listed,
+    or listed but missing: nothing excluded, with a note)."""
+    path = rec.masks.get(kind)
+    if path is None:
+        return None
+    if not path.is_file():
+        log("[fit] %s: %s mask of frame %d not found; nothing excluded there"
+            % (path, kind, rec.index))
+        return None
+    return read_mask(path, shape, what)
+
+
+def camera_exclusion(rec, frames: Frames, width, height, log=print):
+    """(height, width) bool, True where the frame's camera mask excludes any
+    part of the pixel (area-resized, so a masked pixel stays masked); None
+    when nothing is excluded."""
+    full = _frame_mask(rec, "camera", (frames.camera.height, frames.camera.width),
+                       "image (frames.json camera)", log)
+    if full is None or not full.any():
+        return None
+    if full.shape != (height, width):
+        cover = cv2.resize(full.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
+        full = cover > 1e-6
+    return full
+
+
+def lidar_exclusion(rec, shape, log=print):
+    """Bool over the whole range image (``shape``), True where the frame's
+    LiDAR mask excludes the beam; None when nothing is excluded."""
+    full = _frame_mask(rec, "lidar", tuple(shape), "range image %s" % rec.lidar_scan.name, log)
+    if full is None or not full.any():
+        return None
+    return full
+
+
 def fit_size(frames: Frames, fit_width: int):
     w, h = frames.camera.width, frames.camera.height
     if fit_width and fit_width < w:
@@ -128,7 +221,8 @@ def load_observations(scene, frames: Frames, fit_width=320, lidar_columns=512,
                                 % (frames.path, rec.camera, rec.index))
             if not rec.image.is_file():
                 raise UserError("%s: image of frame %d not found" % (rec.image, rec.index))
-            cam = CameraObservation(sensor, _read_image(rec.image, width, height), width, height)
+            cam = CameraObservation(sensor, _read_image(rec.image, width, height), width, height,
+                                    excluded=camera_exclusion(rec, frames, width, height, log))
             cam.rays = camera_rays(sensor, width, height)
             for kind, path in rec.priors.items():
                 if path is not None and path.is_file():
@@ -149,8 +243,10 @@ def load_observations(scene, frames: Frames, fit_width=320, lidar_columns=512,
                     raise UserError("%s: scan is %dx%d but sensor '%s' has another size"
                                     % (rec.lidar_scan, intensity.shape[0], intensity.shape[1],
                                        rec.lidar))
+                excluded = lidar_exclusion(rec, intensity.shape, log)
                 lid = LidarObservation(sensor, intensity[:, cols], rng[:, cols], hit[:, cols],
-                                       rays, row, near)
+                                       rays, row, near,
+                                       excluded=None if excluded is None else excluded[:, cols])
         out.append(FrameObservation(rec.index, rec.held_out, dict(rec.objects), cam, lid))
     if not any(o.camera is not None or o.lidar is not None for o in out if not o.held_out):
         raise UserError("%s: no training frame has an image or a LiDAR scan" % frames.path)

@@ -507,15 +507,17 @@ def fit_return_model(distance, cos_theta, albedo, beam, returned, n_beams: int,
     return ReturnModel(theta[1:], theta[0] + dev)
 
 
-def scene_return_samples(scene, integrator, frames, positions, lidar_size=None):
+def scene_return_samples(scene, integrator, frames, positions, lidar_size=None, log=print):
     """Samples for :func:`fit_return_model` from frames of a fitted scene.
 
     For each frame position: the scene posed at that frame, its LiDAR sensor's
     beams rendered by ``integrator`` (without a ray-drop model), and the
     observed range image's ``hit`` channel. Returns numpy arrays
-    ``(distance, cos, albedo, beam, returned)`` over beams that reach a surface.
+    ``(distance, cos, albedo, beam, returned)`` over beams that reach a
+    surface and that the frame's LiDAR mask does not exclude.
     """
     import drjit as dr
+    from .observations import lidar_exclusion
     from ..io.images import read_exr
     from ..plugins.lidar_return import LidarReturnIntegrator
     from ..scene.posing import set_frame
@@ -534,6 +536,9 @@ def scene_return_samples(scene, integrator, frames, positions, lidar_size=None):
                 continue
             img, names = read_exr(str(rec.lidar_scan))
             hit_obs = img[..., [n.lower() for n in names].index("hit")].ravel() > 0.5
+            # Returns from moving things no node models are left out.
+            excluded = lidar_exclusion(rec, img.shape[:2], log)
+            counts = np.ones(hit_obs.size, bool) if excluded is None else ~excluded.ravel()
             rays, beam, _, near = LidarReturnIntegrator.beam_rays(sensor)
             extra = {}
             with dr.suspend_grad():
@@ -544,7 +549,7 @@ def scene_return_samples(scene, integrator, frames, positions, lidar_size=None):
             vals = (np.array(ch[1]), np.array(extra["cos"]), np.array(ch[3]), np.array(beam),
                     hit_obs)
             for lst, v in zip(out, vals):
-                lst.append(np.asarray(v)[surf])
+                lst.append(np.asarray(v)[surf & counts])
     finally:
         integrator.return_model = saved
     if not out[0]:
@@ -589,7 +594,7 @@ def fit_scene_ray_drop(scene_xml, scene_lidar_xml, frames=None, log=print) -> di
     integrator = mi.load_string('<scene version="3.0.0">%s</scene>'
                                 % ET.tostring(integ_el, encoding="unicode")).integrator()
     train = [k for k in range(len(frames)) if not frames[k].held_out]
-    d, c, rho, beam, ret = scene_return_samples(scene, integrator, frames, train)
+    d, c, rho, beam, ret = scene_return_samples(scene, integrator, frames, train, log=log)
     n_beams = max(int(frames.lidar.beams) if frames.lidar is not None else 1,
                   int(beam.max()) + 1 if beam.size else 1)
     model = fit_return_model(d, c, rho, beam, ret, n_beams)

@@ -38,11 +38,18 @@ MIN_GROUP = 20
 
 
 def seen_weight(table, frozen_hits):
-    """Per global Gaussian: the blend weight it gets summed over camera hits."""
+    """Per global Gaussian: the blend weight it gets summed over camera hits.
+
+    ``frozen_hits``: per frame, its frozen hits, or ``(hits, valid)`` with
+    ``valid`` a bool per pixel (hits on the other pixels do not count)."""
     w = np.zeros(table.total, np.float64)
-    for fh in frozen_hits:
+    for item in frozen_hits:
+        fh, valid = item if isinstance(item, tuple) else (item, None)
         g = np.array(table.global_index(fh.node_ids, fh.prims))
-        w += np.bincount(g, np.array(fh.weight, np.float64), minlength=table.total)
+        weight = np.array(fh.weight, np.float64)
+        if valid is not None:
+            weight = np.where(np.asarray(valid, bool)[np.array(fh.ray)], weight, 0.0)
+        w += np.bincount(g, weight, minlength=table.total)
     return w
 
 

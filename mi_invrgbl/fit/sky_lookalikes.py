@@ -41,9 +41,11 @@ def _segment_exclusive_cumsum(values, ray):
     return incl - before[segment] - values
 
 
-def frame_statistics(scene, rays, max_hits=64, min_transmittance=1e-4, tolerance=0.15):
+def frame_statistics(scene, rays, max_hits=64, min_transmittance=1e-4, tolerance=0.15,
+                     valid=None):
     """Per Gaussian hit of one camera frame: ``(node ids, prims, blend weight,
-    colour mismatch, background mismatch)``.
+    colour mismatch, background mismatch)``. ``valid`` (a bool per ray, or
+    None for all) leaves the hits of the other rays out (weight 0).
 
     The colour mismatch is ``|c - sky| / |sky|`` with the sky radiance along
     the ray. The background mismatch is the ray's: how far what the camera
@@ -91,6 +93,8 @@ def frame_statistics(scene, rays, max_hits=64, min_transmittance=1e-4, tolerance
     cut = (per_ray(hl.count) >= max_hits) | (per_ray(t_end) < min_transmittance) \
         | np.broadcast_to(np.array(hl.surface_valid, bool), (n_rays,))
     behind[cut] = np.inf
+    if valid is not None:
+        w = np.where(np.asarray(valid, bool)[ray], w, 0.0)
     return per_hit(g.node_ids, np.uint32), per_hit(g.prims, np.int64), w, colour_off, behind[ray]
 
 
@@ -106,7 +110,7 @@ def accumulate(acc, shape_ids, stats):
         a[:, 1] += np.bincount(prims[m], w[m] * c_off[m], minlength=n)
         # One ray without evidence (infinite mismatch) keeps the Gaussian;
         # a zero-weight hit adds nothing (not 0 x inf).
-        a[:, 2] += np.bincount(prims[m], np.where(w[m] > 0, w[m] * b_off[m], 0.0), minlength=n)
+        a[:, 2] += np.bincount(prims[m], w[m] * np.where(w[m] > 0, b_off[m], 0.0), minlength=n)
 
 
 def lookalike_masks(acc, tolerance=0.15, min_weight=0.05):
@@ -130,5 +134,5 @@ def find_sky_lookalikes(ctx, frames, tolerance=0.15, min_weight=0.05, stage=1):
             ctx.model.push(f.poses, stage=stage)
             accumulate(acc, ctx.model.shape_ids,
                        frame_statistics(ctx.scene, f.camera.rays, max(ctx.config.max_hits, 64), 1e-4,
-                                        tolerance))
+                                        tolerance, f.camera.valid()))
     return lookalike_masks(acc, tolerance, min_weight)

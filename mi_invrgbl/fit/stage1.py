@@ -9,6 +9,9 @@ through the current Gaussians and fits
   (binary cross-entropy between accumulated opacity and the observed
   return/no-return mask).
 
+Batches are drawn only from the pixels and beams that count
+(:meth:`~.observations.Masked.valid_index`: motion masks left out).
+
 Every ``densify_every`` iterations Gaussians that are nearly transparent are
 pruned and those with large positional gradients are split (large ones) or
 cloned (small ones), as in 3D Gaussian Splatting, up to ``max_gaussians``.
@@ -65,18 +68,22 @@ class Stage1:
     def loss_terms(self, frame):
         cfg = self.ctx.config
         terms = {}
-        if frame.camera is not None and cfg.weights.rgb > 0:
+        # Batches are drawn from the pixels and beams that count (masked
+        # ones never enter a loss, nor the positional gradients).
+        pool = frame.camera.valid_index() if frame.camera is not None else ()
+        if len(pool) and cfg.weights.rgb > 0:
             cam = frame.camera
-            n = cam.width * cam.height
-            idx = mi.UInt32(self.rng.integers(0, n, min(self.batch_camera, n)).astype(np.uint32))
+            n = len(pool)
+            idx = mi.UInt32(pool[self.rng.integers(0, n, min(self.batch_camera, n))])
             rays = _gather_rays(cam.rays, idx)
             rgb, alpha, _ = camera_unlit(self.ctx.scene, rays, cfg.max_hits, cfg.min_transmittance)
             target = dr.gather(mi.Color3f, self.ctx.image_array(frame), idx)
             terms["rgb"] = losses.rgb_loss(rgb, target)
-        if frame.lidar is not None and (cfg.stage1_range > 0 or cfg.stage1_drop > 0):
+        pool = frame.lidar.valid_index() if frame.lidar is not None else ()
+        if len(pool) and (cfg.stage1_range > 0 or cfg.stage1_drop > 0):
             lid = frame.lidar
-            n = dr.width(lid.rays.o)
-            sel = self.rng.integers(0, n, min(self.batch_lidar, n)).astype(np.uint32)
+            n = len(pool)
+            sel = pool[self.rng.integers(0, n, min(self.batch_lidar, n))]
             idx = mi.UInt32(sel)
             rays = _gather_rays(lid.rays, idx)
             ch = lidar_beams(self.ctx.lidar_integrator, self.ctx.scene, rays,

@@ -223,8 +223,8 @@ class Stage2:
                 normals = np.array(table.normal, np.float64).T
                 cos = np.maximum(np.sum(normals * sun_dir, axis=1), 0.0)
                 seen = shading_init.seen_weight(
-                    table, [self.frozen.camera[f.index] for f in ctx.train_frames
-                            if f.index in self.frozen.camera]) > 0.05
+                    table, [(self.frozen.camera[f.index], f.camera.valid())
+                            for f in ctx.train_frames if f.index in self.frozen.camera]) > 0.05
                 rho = np.concatenate([model.nodes[n].numpy("lidar_albedo") for n in names]) \
                     if any(f.lidar is not None for f in ctx.train_frames) else None
                 E, groups = shading_init.estimate_sun_irradiance(colour, D, vis, cos, normals,
@@ -299,8 +299,9 @@ class Stage2:
             c = out["camera"]
             cam = frame.camera
             target = ctx.image_array(frame)
-            terms["rgb"] = losses.rgb_loss(c["rgb"], target)
-            mask = c["alpha"] > 0.5
+            # Masked pixels (moving things no node models) weigh 0 in every term.
+            terms["rgb"] = losses.rgb_loss(c["rgb"], target, cam.valid_mask())
+            mask = cam.restrict(c["alpha"] > 0.5)
             if weights.rgb2lidar > 0:
                 terms["rgb2lidar"] = losses.bilateral_smoothness(
                     c["lidar_albedo"], c["albedo"], cam.height, cam.width,
@@ -328,7 +329,7 @@ class Stage2:
             # which would make L_lidar vanish next to L_rgb at the paper's weights.
             inv = 1.0 / ctx.intensity_scale
             terms["lidar"] = losses.lidar_loss(out["lidar"]["intensity"] * inv, obs * inv,
-                                               hit & (out["lidar"]["alpha"] > 0.5))
+                                               lid.restrict(hit & (out["lidar"]["alpha"] > 0.5)))
         return terms
 
     def iteration(self, it, weights=None):

@@ -78,3 +78,21 @@ def read_image_uint8(path, size, crop=None, expected=None) -> np.ndarray:
     if (img.shape[1], img.shape[0]) != tuple(size):
         img = cv2.resize(img, tuple(size), interpolation=cv2.INTER_AREA)
     return np.ascontiguousarray(img[:, :, ::-1])     # RGB uint8
+
+
+def read_mask(path, shape, what) -> np.ndarray:
+    """An 8-bit mask file (e.g. ``import``'s motion masks, 255 = exclude) as
+    a bool array, True where the value is above 127, of ``shape`` (rows,
+    columns); a one-line ``UserError`` when it is unreadable or of another
+    size. ``what`` names the grid it must cover, for the message."""
+    import cv2
+    from ..errors import UserError
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise UserError("%s: cannot read the mask" % path)
+    if img.ndim == 3:
+        img = img.max(axis=2)
+    if tuple(img.shape) != tuple(shape):
+        raise UserError("%s: mask is %dx%d (width x height) but the %s is %dx%d"
+                        % (path, img.shape[1], img.shape[0], what, shape[1], shape[0]))
+    return img > 127

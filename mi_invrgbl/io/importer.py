@@ -313,8 +313,7 @@ def import_scene(data, out_xml, options: ImportOptions | None = None, log=print)
         steps.run("colours", _colours, state, opts, log)
         frames = steps.run("write", _write, src, state, opts, out.path, out_xml.name, data)
         if state.motion is not None:
-            from .motion import write_masks
-            steps.run("motion masks", write_masks, state, out.path)
+            steps.run("motion masks", _write_motion_masks, state, frames, out.path)
         if opts.verify:
             steps.run("verify", _verify, out.path / out_xml.name)
         out.commit()
@@ -811,6 +810,17 @@ def _write(src, state: ImportState, opts, tmp: Path, scene_name: str, data):
     imported_scene(frames, tmp / scene_name, sky_order=opts.sky_order,
                    sun_irradiance=opts.sun_irradiance, comment=comment).write(str(tmp / scene_name))
     return frames
+
+
+def _write_motion_masks(state: ImportState, frames, tmp: Path) -> int:
+    """The motion masks (io/motion.py), listed in frames.json; the number of
+    frames with anything masked."""
+    from .motion import write_masks
+
+    for rec, paths in zip(frames, write_masks(state, tmp)):
+        rec.masks = dict(paths)
+    frames.save(tmp / "frames.json")
+    return state.counts.get("motion_masked_frames", 0)
 
 
 def _write_clouds(state: ImportState, opts, tmp: Path) -> dict:

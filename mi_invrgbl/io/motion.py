@@ -45,6 +45,10 @@ Mask files (next to the observations, one pair per frame ``NNNN``):
 ``observations/motion_lidar_NNNN.png``
     8-bit single channel, the size of ``lidar_NNNN.exr`` (rows = beams,
     columns = azimuth steps): 255 where the return came from such a thing.
+
+Both are listed in ``frames.json`` (the frame's ``masks``), and ``fit``
+leaves the masked pixels and returns out of its losses, validation scores
+and initialisations (:mod:`mi_invrgbl.fit.observations`).
 """
 
 from __future__ import annotations
@@ -553,25 +557,30 @@ def image_masks(state, which: str = "masked") -> list:
     return out
 
 
-def write_masks(state, out_dir) -> int:
+def write_masks(state, out_dir) -> list:
     """Write the masks of the module docstring into ``out_dir/observations``;
-    returns the number of frames with any masked pixel."""
+    returns per frame the ``{"camera": path, "lidar": path}`` written (the
+    frame records' ``masks``), empty dicts when motion was not run."""
     import cv2
     from pathlib import Path
 
     res = state.motion
     if res is None:
-        return 0
+        return [{} for _ in state.range_images]
     obs = Path(out_dir) / "observations"
     cams = image_masks(state)
     n_any = 0
+    written = []
     for i, ri in enumerate(state.range_images):
         lidar = np.zeros(ri.shape, np.uint8)
         idx = ri.index
         hit = idx >= 0
         lidar[hit] = np.where(res.masked[i][idx[hit]], 255, 0)
-        cv2.imwrite(str(obs / ("motion_lidar_%04d.png" % i)), lidar)
-        cv2.imwrite(str(obs / ("motion_%04d.png" % i)), cams[i])
+        paths = {"camera": obs / ("motion_%04d.png" % i),
+                 "lidar": obs / ("motion_lidar_%04d.png" % i)}
+        cv2.imwrite(str(paths["lidar"]), lidar)
+        cv2.imwrite(str(paths["camera"]), cams[i])
+        written.append(paths)
         n_any += bool(lidar.any() or cams[i].any())
     state.counts["motion_masked_frames"] = n_any
-    return n_any
+    return written

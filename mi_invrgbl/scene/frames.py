@@ -33,7 +33,9 @@ Records (all paths resolved to absolute ``Path`` objects; matrices are
     ``image``, ``lidar_scan``, ``points`` (Paths), ``camera_to_world`` (dataset
     camera frame: x right, y down, z forward), ``lidar_to_world`` (x forward,
     y left, z up), ``objects`` (``{name: object_to_world}``), ``priors``
-    (``{kind: Path}``), ``extra``. ``camera_to_world_mitsuba`` is the
+    (``{kind: Path}``), ``masks`` (``{"camera" | "lidar": Path}``, pixels and
+    beams the fit leaves out, see :mod:`mi_invrgbl.fit.observations`),
+    ``extra``. ``camera_to_world_mitsuba`` is the
     sensor's ``to_world`` (``camera_to_world @ diag(-1, -1, 1, 1)``).
 ``ObjectRecord``
     ``name`` (the shape id, ``object_<track>``), ``track_id``, ``kind``,
@@ -197,6 +199,7 @@ class FrameRecord:
     lidar_to_world: np.ndarray
     objects: dict = field(default_factory=dict)   # name -> (4, 4) object -> world
     priors: dict = field(default_factory=dict)    # kind -> Path
+    masks: dict = field(default_factory=dict)     # "camera" / "lidar" -> Path (255 = exclude)
     extra: dict = field(default_factory=dict)
 
     @property
@@ -206,7 +209,8 @@ class FrameRecord:
 
 
 _FRAME_KEYS = {"index", "time", "held_out", "camera", "lidar", "image", "lidar_scan",
-               "points", "camera_to_world", "lidar_to_world", "objects", "priors"}
+               "points", "camera_to_world", "lidar_to_world", "objects", "priors",
+               "masks"}
 _TOP_KEYS = {"format", "source", "camera", "lidar", "objects", "ground_truth", "frames"}
 
 
@@ -323,6 +327,7 @@ class Frames:
                     objects={n: _matrix(m, f"{where}.objects.{n}")
                              for n, m in (f.get("objects") or {}).items()},
                     priors={n: rel(p) for n, p in (f.get("priors") or {}).items()},
+                    masks={n: rel(p) for n, p in (f.get("masks") or {}).items()},
                     extra={kk: v for kk, v in f.items() if kk not in _FRAME_KEYS}))
         except KeyError as exc:
             raise UserError(f"{jpath}: missing key {exc.args[0]!r}") from None
@@ -362,6 +367,8 @@ class Frames:
                  "objects": {n: _list(m) for n, m in f.objects.items()}}
             if f.priors:
                 d["priors"] = {n: rel(p) for n, p in f.priors.items()}
+            if f.masks:
+                d["masks"] = {n: rel(p) for n, p in f.masks.items()}
             d.update(f.extra)
             frames.append(d)
         out = {"format": FORMAT, "source": self.source, "camera": self.camera.to_json(),
