@@ -276,7 +276,16 @@ def test_roughness_extremes(tmp_path, tau):
     img = render(sc)
     assert np.all(np.isfinite(img))
     ref = paper_intensity(0.2, tau, cos, dist, 1.0)  # tau < 1e-3 is clamped to 1e-3 (documented)
-    assert np.allclose(img[1:, CH_I], ref[1:], rtol=1e-3)
+    # Near normal incidence a smooth lobe turns float32 rounding of cos^2
+    # into a large relative change: d ln D / d cos^2 = 2 (1 - a^2) / (1 - cos^2 (1 - a^2)),
+    # 1.3e4 for the beam at cos = 0.99992 with a = 1e-3, so one ulp of cos^2
+    # (1.2e-7) moves it by 1.5e-3 (measured on CUDA: 1.03e-3). Each beam's
+    # tolerance is 1e-3 plus four ulps of cos^2 through that sensitivity.
+    a2 = max(tau, 1e-3) ** 2
+    sens = 2 * (1 - a2) / (1 - cos ** 2 * (1 - a2))
+    rtol = 1e-3 + 4 * np.finfo(np.float32).eps * sens
+    assert np.all(np.abs(img[1:, CH_I] / ref[1:] - 1) <= rtol[1:]), \
+        (np.abs(img[1:, CH_I] / ref[1:] - 1) / rtol[1:]).max()
     # At normal incidence a smooth lobe is so sharp that float32 rounding of
     # the beam direction (sin^2 ~ 1e-7 vs alpha^2 = 1e-6) moves the value:
     # require a finite return below the exact peak, and exactness for rough tau.
