@@ -100,3 +100,22 @@ def test_no_sun_leaves_visibility_alone(e):
         s["colour"], s["sky"], np.full(3, e), s["traced"], s["cos"], s["seen"], s["lidar"])
     assert lowered == 0.0 and raised == 0.0
     assert np.array_equal(v, s["traced"])
+
+
+def test_sun_irradiance_falls_back_to_the_selection_level_when_facings_disagree():
+    from mi_invrgbl.fit.shading_init import LUMINANCE, MAX_DISAGREEMENT, reconcile_sun_irradiance
+    level = 2.0
+    agree = np.array([2.2, 2.5, 2.6])
+    E, source = reconcile_sun_irradiance(agree, level)
+    assert source == "facings" and np.allclose(E, agree)
+    # A collapsed estimate (as one KITTI fit started from) keeps its colour
+    # and takes the selection's level.
+    collapsed = np.array([0.09, 0.10, 0.09])
+    E, source = reconcile_sun_irradiance(collapsed, level)
+    assert source.startswith("selection") and np.isclose(E @ LUMINANCE, level)
+    assert np.allclose(E / E.sum(), collapsed / collapsed.sum())
+    too_bright = agree * (MAX_DISAGREEMENT + 1)
+    assert reconcile_sun_irradiance(too_bright, level)[1].startswith("selection")
+    E, source = reconcile_sun_irradiance(None, level)
+    assert np.allclose(E, level) and source.startswith("selection")
+    assert np.all(np.isfinite(reconcile_sun_irradiance(np.zeros(3), level)[0]))

@@ -236,9 +236,12 @@ def freeze(state: FitState, initialise):
     if initialise:
         si = state.selection["shading_init"] = stage2.init_shading()
         if "sun_irradiance" in si:
-            state.log("[fit] sun irradiance %s from %d facings with sunlit and shadowed Gaussians "
-                      "(%.0f %% of the seen Gaussians in traced shadow)"
-                      % (np.round(si["sun_irradiance"], 3).tolist(), si["facings"], 100 * si["shadowed"]))
+            source = si.get("sun_irradiance_from", "facings")
+            state.log("[fit] sun irradiance %s from %s (%d facings with sunlit and shadowed "
+                      "Gaussians; %.0f %% of the seen Gaussians in traced shadow)"
+                      % (np.round(si["sun_irradiance"], 3).tolist(),
+                         "them" if source == "facings" else "the lighting " + source,
+                         si["facings"], 100 * si["shadowed"]))
     # Trace the per-Gaussian visibility now (it is cached on first use),
     # so that it is counted here and not in the first stage-2 iteration.
     with dr.suspend_grad():

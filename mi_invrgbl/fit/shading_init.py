@@ -90,6 +90,33 @@ def estimate_sun_irradiance(colour, sky_term, visibility, cos, normals, seen, li
     return np.maximum(out, 0.0), len(estimates)
 
 
+#: Luminance weights of linear RGB.
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+#: Factor (in luminance) by which the facing-based sun irradiance may differ
+#: from the lighting selection's before the selection's level is used.
+MAX_DISAGREEMENT = 4.0
+
+
+def reconcile_sun_irradiance(estimate, selection_level):
+    """The sun irradiance stage 2 starts from: the facing estimate
+    (:func:`estimate_sun_irradiance`) where it agrees with the lighting
+    selection's level (``pi x`` its sun/sky ratio ``x`` the sky term)
+    within :data:`MAX_DISAGREEMENT`; otherwise its colour at the selection's
+    level. The facing estimate rests on a median over a few facings and can
+    collapse (one KITTI fit started from a sun of 0.09 against a selection
+    level near 2, and stage 2 fell to 8 dB); the selection's ratio comes
+    from every seen Gaussian. Returns ``(E (3,), source)``.
+    """
+    level = float(selection_level)
+    if estimate is None:
+        return np.full(3, max(level, 1e-3)), "selection (no facing with lit and shadowed Gaussians)"
+    e = float(np.asarray(estimate) @ LUMINANCE)
+    if level > 0 and not (level / MAX_DISAGREEMENT <= e <= level * MAX_DISAGREEMENT):
+        colour = np.asarray(estimate, np.float64) / e if e > 1e-6 else np.ones(3)
+        return np.maximum(colour * level, 1e-3), "selection (facings gave %.3g)" % e
+    return np.maximum(np.asarray(estimate, np.float64), 1e-3), "facings"
+
+
 def visibility_from_lidar_albedo(colour, sky_term, sun_irradiance, visibility, cos, seen,
                                  lidar_albedo, shadow=SHADOW, lit=LIT):
     """Correct the traced sun visibility where the colour clearly says otherwise.

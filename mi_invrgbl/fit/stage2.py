@@ -229,11 +229,10 @@ class Stage2:
                     if any(f.lidar is not None for f in ctx.train_frames) else None
                 E, groups = shading_init.estimate_sun_irradiance(colour, D, vis, cos, normals,
                                                                   seen, rho)
-                if E is None:   # no patch with both: the selection's sun/sky ratio
-                    sel = ctx.selection.get("sun", {})
-                    E = np.full(3, np.pi * sel.get("sun_to_sky", 1.0)
-                                * float(np.median(D[seen].mean(axis=1))) if seen.any() else 1.0)
-                E = np.maximum(E, 1e-3)
+                # The lighting selection's level: its sun/sky ratio times the sky term.
+                level = (np.pi * ctx.selection.get("sun", {}).get("sun_to_sky", 1.0)
+                         * float(np.median(D[seen] @ shading_init.LUMINANCE)) if seen.any() else 1.0)
+                E, source = shading_init.reconcile_sun_irradiance(E, level)
                 if self.learn_sun_visibility and rho is not None and ctx.config.weights.lidar2rgb > 0:
                     # L_lidar->rgb's premise at the start: where the colour is
                     # much darker than the LiDAR albedo predicts, the sun is
@@ -247,7 +246,7 @@ class Stage2:
                         E2, _ = shading_init.estimate_sun_irradiance(colour, D, vis, cos, normals,
                                                                      seen, rho)
                         if E2 is not None:
-                            E = np.maximum(E2, 1e-3)
+                            E, source = shading_init.reconcile_sun_irradiance(E2, level)
                     report["lidar_albedo_shadowed"] = lowered
                     report["lidar_albedo_unshadowed"] = raised
                     for name, v in zip(names, shading_init.split_by_node(vis, table, counts)):
@@ -255,7 +254,8 @@ class Stage2:
                 ctx.params[ctx.sun_key] = mi.Color3f(*[float(x) for x in E])
                 ctx.params.update()
                 sun_term = E[None, :] * (vis * cos)[:, None] / np.pi
-                report.update(sun_irradiance=E.tolist(), facings=int(groups),
+                report.update(sun_irradiance=E.tolist(), sun_irradiance_from=source,
+                              facings=int(groups),
                               shadowed=float(np.mean(vis[seen] < 0.5)) if seen.any() else 0.0)
             albedo = shading_init.albedo_from_shading(colour, D, sun_term)
             for name, a in zip(names, shading_init.split_by_node(albedo, table, counts)):
