@@ -103,7 +103,8 @@ def test_no_sun_leaves_visibility_alone(e):
 
 
 def test_sun_irradiance_falls_back_to_the_selection_level_when_facings_disagree():
-    from mi_invrgbl.fit.shading_init import LUMINANCE, MAX_DISAGREEMENT, reconcile_sun_irradiance
+    from mi_invrgbl.physics.colour import LUMINANCE
+    from mi_invrgbl.fit.shading_init import MAX_DISAGREEMENT, reconcile_sun_irradiance
     level = 2.0
     agree = np.array([2.2, 2.5, 2.6])
     E, source = reconcile_sun_irradiance(agree, level)

@@ -15,6 +15,7 @@ import numpy as np
 import drjit as dr
 
 from ..physics import hits as hitlib
+from ..physics.colour import LUMINANCE
 from ..physics.lighting import LightingCache
 from .evaluate import score_stage2
 from .losses import LossWeights
@@ -95,7 +96,7 @@ def choose_lighting(ctx: FitState) -> LightingChoice:
         # Radiance each Gaussian shows in the images (weighted mean of the
         # pixels it contributes to): what the light did, before any fitting.
         colour = seen_colour[name][seen] / weight[name][seen][:, None]
-        lum.append(colour @ np.array([0.2126, 0.7152, 0.0722]))
+        lum.append(colour @ LUMINANCE)
         wts.append(weight[name][seen])
     centers, normals = np.concatenate(centers), np.concatenate(normals)
     lum, wts = np.concatenate(lum), np.concatenate(wts)

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..physics.colour import LUMINANCE
 from .selection import surface_patches
 
 #: Visibility thresholds of the sunlit and shadowed groups compared.
@@ -90,8 +91,6 @@ def estimate_sun_irradiance(colour, sky_term, visibility, cos, normals, seen, li
     return np.maximum(out, 0.0), len(estimates)
 
 
-#: Luminance weights of linear RGB.
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 #: Factor (in luminance) by which the facing-based sun irradiance may differ
 #: from the lighting selection's before the selection's level is used.
 MAX_DISAGREEMENT = 4.0
@@ -134,8 +133,7 @@ def visibility_from_lidar_albedo(colour, sky_term, sun_irradiance, visibility, c
 
     Returns ``(visibility, share of seen Gaussians lowered, share raised)``.
     """
-    lum = np.array([0.2126, 0.7152, 0.0722])
-    c, d, e = colour @ lum, sky_term @ lum, float(sun_irradiance @ lum)
+    c, d, e = colour @ LUMINANCE, sky_term @ LUMINANCE, float(sun_irradiance @ LUMINANCE)
     rho = np.maximum(lidar_albedo, 0.05)
     usable = seen & (lidar_albedo > 0.05) & (cos > 0.2) & np.isfinite(c)
     traced_lit = usable & (visibility >= lit)

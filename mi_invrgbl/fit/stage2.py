@@ -38,6 +38,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..physics import hits as hitlib
+from ..physics.colour import LUMINANCE
 from ..physics.lighting import (GaussianLighting, GaussianTable, LightingCache, light_at,
                                 point_lights, transmittance)
 from . import losses, shading_init
@@ -231,7 +232,7 @@ class Stage2:
                                                                   seen, rho)
                 # The lighting selection's level: its sun/sky ratio times the sky term.
                 level = (np.pi * ctx.selection.get("sun", {}).get("sun_to_sky", 1.0)
-                         * float(np.median(D[seen] @ shading_init.LUMINANCE)) if seen.any() else 1.0)
+                         * float(np.median(D[seen] @ LUMINANCE)) if seen.any() else 1.0)
                 E, source = shading_init.reconcile_sun_irradiance(E, level)
                 if self.learn_sun_visibility and rho is not None and ctx.config.weights.lidar2rgb > 0:
                     # L_lidar->rgb's premise at the start: where the colour is

@@ -23,6 +23,7 @@ from dataclasses import field as dc_field, make_dataclass
 
 import numpy as np
 
+from .colour import LUMINANCE
 from .fields import BY_NAME, GEOMETRY, MATERIAL
 
 SH_C0 = 0.28209479177387814  # real SH band-0 constant: colour = 0.5 + SH_C0 * f_dc
@@ -58,7 +59,7 @@ class _CloudMethods:
         if self.albedo is None:
             self.albedo = np.full((n, 3), BY_NAME["albedo"].default, np.float32)
         if self.lidar_albedo is None:
-            self.lidar_albedo = (self.albedo @ np.array([0.2126, 0.7152, 0.0722])).astype(np.float32)
+            self.lidar_albedo = (self.albedo @ LUMINANCE).astype(np.float32)
         for f in MATERIAL:
             if getattr(self, f.cloud) is None:
                 shape = (n,) if f.width == 1 else (n, f.width)
