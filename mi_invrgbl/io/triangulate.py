@@ -236,6 +236,37 @@ def triangulate_dlt(rays_cam: np.ndarray, w2c: np.ndarray) -> np.ndarray:
     return X[:, :3] / w
 
 
+
+def triangulate_views(xy, w2c, centres, K, Kinv, min_depth, max_depth, max_reproj_px,
+                      min_parallax_deg):
+    """Triangulate N tracks seen in V views and check them in every view.
+
+    ``xy`` (N, V, 2) pixels, ``w2c`` (N, V, 4, 4) and ``centres`` (N, V, 3)
+    the views' poses. A point is kept when it lies at least ``min_depth`` in
+    front of every camera, within ``max_depth`` of the nearest, reprojects
+    within ``max_reproj_px`` in every view and is seen under at least
+    ``min_parallax_deg`` by its most separated pair of views. Returns
+    ``(X, ok, err, parallax, rays, dist)``: rays (N, V, 3) from the point to
+    each camera, dist (N, V) their lengths."""
+    h = np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], axis=2) @ Kinv.T
+    X = triangulate_dlt(h[:, :, :2] / h[:, :, 2:3], w2c)
+    pc = np.einsum("nvij,nj->nvi", w2c[:, :, :3, :3], X) + w2c[:, :, :3, 3]
+    z = pc[:, :, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = K[0, 0] * pc[:, :, 0] / z + K[0, 2]
+        v = K[1, 1] * pc[:, :, 1] / z + K[1, 2]
+    err = np.sqrt((u - xy[:, :, 0]) ** 2 + (v - xy[:, :, 1]) ** 2)
+    err = np.where(np.isfinite(err), err, np.inf).max(axis=1)
+    rays = centres - X[:, None, :]
+    dist = np.linalg.norm(rays, axis=2)
+    rays = rays / np.maximum(dist[:, :, None], 1e-12)
+    cosang = np.einsum("nai,nbi->nab", rays, rays)
+    parallax = np.degrees(np.arccos(np.clip(cosang.min(axis=(1, 2)), -1, 1)))
+    ok = ((z.min(axis=1) >= min_depth) & (dist.min(axis=1) <= max_depth)
+          & (err <= max_reproj_px) & (parallax >= min_parallax_deg)
+          & np.all(np.isfinite(X), axis=1))
+    return X, ok, err, parallax, rays, dist
+
 def _bilinear(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
     H, W = image.shape[:2]
     x = np.clip(xy[:, 0], 0, W - 1.001)
@@ -341,24 +372,9 @@ def triangulate_frames(load_image: Callable[[int], np.ndarray], cam_to_world: np
             for i in np.unique(fr):
                 sel = fr == i
                 xy[sel] = feats[int(i)][0][kp[sel]]
-            h = np.concatenate([xy, np.ones(idx.shape + (1,))], axis=2) @ Kinv.T
-            X = triangulate_dlt(h[:, :, :2] / h[:, :, 2:3], w2c_all[fr])
-            # Reprojection and cheirality in every view.
-            pc = np.einsum("nvij,nj->nvi", w2c_all[fr][:, :, :3, :3], X) + w2c_all[fr][:, :, :3, 3]
-            z = pc[:, :, 2]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                u = K[0, 0] * pc[:, :, 0] / z + K[0, 2]
-                v = K[1, 1] * pc[:, :, 1] / z + K[1, 2]
-            err = np.sqrt((u - xy[:, :, 0]) ** 2 + (v - xy[:, :, 1]) ** 2)
-            err = np.where(np.isfinite(err), err, np.inf).max(axis=1)
-            rays = centres[fr] - X[:, None, :]
-            dist = np.linalg.norm(rays, axis=2)
-            rays = rays / np.maximum(dist[:, :, None], 1e-12)
-            cosang = np.einsum("nai,nbi->nab", rays, rays)
-            parallax = np.degrees(np.arccos(np.clip(cosang.min(axis=(1, 2)), -1, 1)))
-            ok = ((z.min(axis=1) >= opts.min_depth) & (dist.min(axis=1) <= opts.max_depth)
-                  & (err <= opts.max_reproj_px) & (parallax >= opts.min_parallax_deg)
-                  & np.all(np.isfinite(X), axis=1))
+            X, ok, err, parallax, rays, dist = triangulate_views(
+                xy, w2c_all[fr], centres[fr], K, Kinv, opts.min_depth, opts.max_depth,
+                opts.max_reproj_px, opts.min_parallax_deg)
             if not ok.any():
                 continue
             col = np.zeros((int(ok.sum()), 3))
@@ -451,23 +467,12 @@ def dense_frames(load_image: Callable[[int], np.ndarray], cam_to_world: np.ndarr
         if not len(xa):
             continue
         xy = np.stack([xa, xb], 1)                                   # (N, 2, 2)
-        h = np.concatenate([xy, np.ones(xy.shape[:2] + (1,))], axis=2) @ Kinv.T
         fr = np.array([a, b])
-        X = triangulate_dlt(h[:, :, :2] / h[:, :, 2:3], np.broadcast_to(w2c_all[fr], (len(xa), 2, 4, 4)))
-        pc = np.einsum("vij,nj->nvi", w2c_all[fr][:, :3, :3], X) + w2c_all[fr][None, :, :3, 3]
-        z = pc[:, :, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = K[0, 0] * pc[:, :, 0] / z + K[0, 2]
-            v = K[1, 1] * pc[:, :, 1] / z + K[1, 2]
-        err = np.sqrt((u - xy[:, :, 0]) ** 2 + (v - xy[:, :, 1]) ** 2)
-        err = np.where(np.isfinite(err), err, np.inf).max(axis=1)
-        rays = centres[fr][None] - X[:, None, :]
-        dist = np.linalg.norm(rays, axis=2)
-        rays = rays / np.maximum(dist[:, :, None], 1e-12)
-        parallax = np.degrees(np.arccos(np.clip(np.sum(rays[:, 0] * rays[:, 1], axis=1), -1, 1)))
-        keep = ((z.min(axis=1) >= opts.min_depth) & (dist.min(axis=1) <= opts.max_depth)
-                & (err <= opts.max_reproj_px) & (parallax >= opts.dense_min_parallax_deg)
-                & np.all(np.isfinite(X), axis=1))
+        n = len(xa)
+        X, keep, err, parallax, rays, dist = triangulate_views(
+            xy, np.broadcast_to(w2c_all[fr], (n, 2, 4, 4)), np.broadcast_to(centres[fr], (n, 2, 3)),
+            K, Kinv, opts.min_depth, opts.max_depth, opts.max_reproj_px,
+            opts.dense_min_parallax_deg)
         if not keep.any():
             continue
         col = 0.5 * (_bilinear(linear[a], xa[keep]) + _bilinear(linear[b], xb[keep]))
