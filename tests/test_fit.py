@@ -375,6 +375,23 @@ def test_densify_carries_adam_moments(scene_path, tmp_path):
     assert ok and np.isfinite(loss)
 
 
+def test_step_with_finite_loss_but_infinite_gradient_is_rolled_back():
+    # sqrt at 0: the loss is 0, its gradient infinite. One read-back checks
+    # both; the step is skipped, learning rates halved, the value kept.
+    import drjit as dr
+    from mi_invrgbl.fit.steps import make_optimizer, safe_step
+    opt = make_optimizer({"x": mi.Float([0.0, 1.0])}, {"x": 0.1})
+    lines, state = [], {}
+    ok = safe_step(opt, dr.sum(dr.sqrt(opt["x"])), lines.append, state, "test step")
+    assert not ok and state["rollbacks"] == 1 and state["scale"] == 0.5
+    assert "a gradient is not finite" in lines[0]
+    assert np.allclose(np.array(opt["x"]), [0.0, 1.0]) and abs(opt.learning_rate("x") - 0.05) < 1e-9
+    lines.clear()
+    assert not safe_step(opt, dr.sum(opt["x"]) * float("nan"), lines.append, state, "test step")
+    assert "loss is nan" in lines[0]
+    assert safe_step(opt, dr.sum(dr.square(opt["x"])), lines.append, state, "test step")
+
+
 def test_early_stop_and_budget_plan():
     from mi_invrgbl.fit.budget import EarlyStop, MAX_ITERATIONS, plan_stage, position_lr_factor
     stop = EarlyStop(patience=3, min_gain=0.02)
