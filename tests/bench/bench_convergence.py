@@ -17,16 +17,21 @@ baseline, the fit's peak memory and its wall time. The rows go to
 ``WORK/convergence.md`` and ``WORK/convergence.json``, and a plot of error
 against wall time to ``WORK/convergence.png`` (drawn with OpenCV).
 
-Budgets. Every row is a real ``fit --budget MINUTES``: the fit plans its
-stages' iterations and batches from the budget and its measured speed and
-stops a stage early when its validation score stops improving; the row
-shows the iterations each stage actually ran and the wall time.
+Budgets. When ``fit`` has ``--budget MINUTES`` the bench passes it on.
+Otherwise it maps a budget to iterations with a calibration fit per case
+(``--calibration`` iterations per stage, its times kept in
+``WORK/CASE/calibration.json``): the fixed cost (loading, selections,
+caching, outputs) is the calibration's wall time less its two stages, and
+the remaining budget is split evenly in time between the stages at the
+calibration's seconds per iteration. A budget below the fixed cost gets
+``--min-iterations`` per stage and is marked ``over`` in the table: the row
+then shows the cheapest fit, not one that met the budget.
 """
 
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass, asdict, fields
+from dataclasses import dataclass, asdict
 import json
 import math
 import os
@@ -50,6 +55,7 @@ class Row:
     budget_min: float
     stage1: int
     stage2: int
+    over_budget: bool
     psnr: float | None = None
     ssim: float | None = None
     albedo_rmse: float | None = None
@@ -82,6 +88,15 @@ def run(cmd, log):
         f.write("# exit %d after %.1f s\n" % (proc.returncode, time.perf_counter() - t))
     if proc.returncode != 0:
         raise SystemExit("failed (exit %d): %s; see %s" % (proc.returncode, " ".join(cmd), log))
+
+
+def has_budget_option(variant) -> bool:
+    out = subprocess.run(cli(variant, "fit", "--help"), capture_output=True, text=True,
+                         env=_env(), cwd=ROOT)
+    if out.returncode != 0:
+        raise SystemExit("mi-invrgbl fit --help failed (exit %d): %s"
+                         % (out.returncode, (out.stderr.strip().splitlines() or [""])[-1]))
+    return "--budget" in out.stdout
 
 
 def prepare(case, work: Path, variant, log) -> Path:
@@ -117,19 +132,76 @@ def fit_metrics(out: Path) -> dict:
         return json.load(f)
 
 
-def fit_budget(case, scene: Path, budget, variant, args, log) -> Row:
+@dataclass
+class Calibration:
+    stage1: int
+    stage2: int
+    stage1_s: float
+    stage2_s: float
+    fixed_s: float
+
+    def iterations(self, budget_s, minimum):
+        """Stage iterations that fill ``budget_s``; (n1, n2, over budget)."""
+        left = budget_s - self.fixed_s
+        n1 = int(0.5 * left / (self.stage1_s / self.stage1)) if left > 0 else 0
+        n2 = int(0.5 * left / (self.stage2_s / self.stage2)) if left > 0 else 0
+        over = n1 < minimum or n2 < minimum
+        return max(n1, minimum), max(n2, minimum), over
+
+
+def calibrate(case, scene: Path, variant, iters, log) -> Calibration:
+    path = scene.parent / "calibration.json"
+    if path.is_file():
+        c = Calibration(**json.loads(path.read_text()))
+        if c.stage1 == iters:
+            return c
+    out = scene.parent / "fit_calibration"
+
+    def times():
+        # fit writes its times at the top of metrics.json; eval moves them under "fit"
+        if not (out / "metrics.json").is_file():
+            return None
+        m = fit_metrics(out)
+        m = m.get("fit", m)
+        cfg = m.get("config", {})
+        if cfg.get("stage1_iterations") != iters or cfg.get("stage2_iterations") != iters:
+            return None
+        return m
+
+    fit = times()
+    if fit is None:
+        run(cli(variant, "fit", scene, "-o", out, "--stage1", iters, "--stage2", iters), log)
+        fit = times()
+    if fit is None or "times_s" not in fit:
+        raise SystemExit(f"{out}: no metrics.json with the fit's times")
+    t = fit["times_s"]
+    c = Calibration(iters, iters, float(t["stage 1"]), float(t["stage 2"]),
+                    float(fit["wall_s"]) - float(t["stage 1"]) - float(t["stage 2"]))
+    path.write_text(json.dumps(asdict(c), indent=1))
+    return c
+
+
+def fit_budget(case, scene: Path, budget, variant, args, cal, log) -> Row:
     out = scene.parent / ("fit_%gmin" % budget)
-    cmd = cli(variant, "fit", scene, "-o", out, "--budget", budget)
+    if args.native_budget:
+        n1 = n2 = None
+        over = False
+        cmd = cli(variant, "fit", scene, "-o", out, "--budget", budget)
+    else:
+        n1, n2, over = cal.iterations(60.0 * budget, args.min_iterations)
+        cmd = cli(variant, "fit", scene, "-o", out, "--stage1", n1, "--stage2", n2)
     if not (args.reuse and (out / "metrics.json").is_file()
             and "mean" in fit_metrics(out)):
         run(cmd, log)
         run(cli(variant, "eval", out), log)
     m = fit_metrics(out)
     mean, fit = m.get("mean", {}), m.get("fit", {})
-    # Iterations run (a budgeted stage may stop early), not the configured defaults.
-    ran = fit.get("iterations") or iterations_run(out / "log.csv")
+    if n1 is None:
+        # Iterations run (a budgeted stage may stop early), not the configured defaults.
+        ran = fit.get("iterations") or iterations_run(out / "log.csv")
+        n1, n2 = ran.get("stage 1"), ran.get("stage 2")
     wall = fit.get("wall_s")
-    return Row(case, budget, ran.get("stage 1"), ran.get("stage 2"), mean.get("psnr"), mean.get("ssim"),
+    return Row(case, budget, n1, n2, over, mean.get("psnr"), mean.get("ssim"),
                mean.get("albedo_rmse"), mean.get("normal_angle_deg"), mean.get("relight_psnr"),
                mean.get("lidar_intensity_rmse"), mean.get("baseline_intensity_rmse"),
                fit.get("peak_rss_mb"), wall, variant)
@@ -154,7 +226,7 @@ def table(rows) -> str:
             if v is None or (isinstance(v, float) and math.isnan(v)):
                 cells.append("-")
             else:
-                cells.append(fmt % v)
+                cells.append(fmt % v + (" (over)" if key == "budget_min" and r.over_budget else ""))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -257,6 +329,9 @@ def main(argv=None):
     ap.add_argument("--cases", default="street,kitti", help="comma-separated: street, kitti")
     ap.add_argument("--work", default=str(ROOT / "out" / "bench_convergence"),
                     help="folder for the scenes, fits, table and plot")
+    ap.add_argument("--calibration", type=int, default=20,
+                    help="iterations per stage of the calibration fit (default 20)")
+    ap.add_argument("--min-iterations", type=int, default=10)
     ap.add_argument("--reuse", action="store_true",
                     help="keep fits that already have an eval (re-print and re-plot)")
     ap.add_argument("--merge", nargs="+", default=[], metavar="JSON",
@@ -269,10 +344,7 @@ def main(argv=None):
         # PATH or PATH:VARIANT (for rows written before the variant column)
         path, _, variant = item.rpartition(":") if not Path(item).is_file() else (item, "", "")
         try:
-            # Fields a Row no longer has (older runs) are left out.
-            names = {f.name for f in fields(Row)}
-            rows_in = [Row(**{k: v for k, v in r.items() if k in names})
-                       for r in json.loads(Path(path).read_text())]
+            rows_in = [Row(**r) for r in json.loads(Path(path).read_text())]
         except (OSError, ValueError, TypeError) as e:
             raise SystemExit(f"{path}: not a convergence.json ({e})")
         for r in rows_in:
@@ -294,12 +366,21 @@ def main(argv=None):
     work = Path(args.work).absolute()
     work.mkdir(parents=True, exist_ok=True)
     log = work / "bench.log"
-    print("budgets %s min; fit --budget" % " ".join("%g" % b for b in budgets), flush=True)
+    args.native_budget = has_budget_option(args.variant)
+    print("budgets %s min; %s" % (" ".join("%g" % b for b in budgets),
+                                   "fit --budget" if args.native_budget else
+                                   "iterations from a calibration fit"), flush=True)
     rows = []
     for case in cases:
         scene = prepare(case, work, args.variant, log)
+        cal = None
+        if not args.native_budget:
+            cal = calibrate(case, scene, args.variant, args.calibration, log)
+            print("%s: calibration %d+%d iterations: stage 1 %.2f s/it, stage 2 %.2f s/it, "
+                  "fixed %.0f s" % (case, cal.stage1, cal.stage2, cal.stage1_s / cal.stage1,
+                                    cal.stage2_s / cal.stage2, cal.fixed_s), flush=True)
         for b in sorted(budgets):
-            rows.append(fit_budget(case, scene, b, args.variant, args, log))
+            rows.append(fit_budget(case, scene, b, args.variant, args, cal, log))
             print(table(rows), flush=True)
     rows += merged
     text = table(rows)
