@@ -105,3 +105,40 @@ def test_cross_validated_gain_separates_shadows_from_picked_noise():
     s = noise_feats[:, 7]
     sunny = albedo * (1 + 2.0 * s) * np.exp(rng.normal(0, 0.3, n))
     assert cross_validated_gain(sunny, patches, w, noise_feats) > 0.5
+
+
+def test_render_samples_choice_keeps_to_a_budget(monkeypatch):
+    """With a deadline, M for rendering scores the fit's own M first (its
+    visibility is cached) and other M only while their predicted time fits."""
+    import time
+    from types import SimpleNamespace
+    from mi_invrgbl.fit import model_selection as ms
+
+    scored = []
+
+    def fake_score(stage2, frames, samples, caches):
+        scored.append(samples)
+        time.sleep(0.02 * samples)              # time grows with M, like the trace
+        return 20.0 + 0.01 * samples, float("nan")
+    monkeypatch.setattr(ms, "score_stage2", fake_score)
+    frames = [SimpleNamespace(index=i, camera=object()) for i in range(3)]
+    ctx = SimpleNamespace(
+        config=SimpleNamespace(samples=16, render_samples="auto", weights=SimpleNamespace(rgb=1.0)),
+        validation_frames=frames, train_frames=[], observations=list(range(30)),
+        times={"freeze": 10.0})
+    frozen = SimpleNamespace(caches={f.index: object() for f in frames})
+    # No deadline: every candidate, the fit's M first.
+    out = ms.choose_render_samples(ctx, None, frozen)
+    assert scored == [16, 4, 8, 32] and "skipped_for_budget" not in out
+    assert out["samples"] == 32 - 0 and set(out["by_samples"]) == {"4", "8", "16", "32"}
+    # A deadline already passed: only the fit's M (free), the rest skipped.
+    scored.clear()
+    out = ms.choose_render_samples(ctx, None, frozen, deadline=time.perf_counter())
+    assert scored == [16] and out["samples"] == 16 and out["skipped_for_budget"] == [4, 8, 32]
+    # Freezing took 10 s for 30 frames at M=16, so M=4 on 3 frames is
+    # predicted at 0.25 s; then 0.02 s per sample as measured. With 0.8 s:
+    # M=16 (0.32 s), M=4 (0.08 s), M=8 (0.16 s) fit, M=32 (0.64 s) does not.
+    scored.clear()
+    out = ms.choose_render_samples(ctx, None, frozen, deadline=time.perf_counter() + 0.8)
+    assert scored == [16, 4, 8]
+    assert 32 in out["skipped_for_budget"]

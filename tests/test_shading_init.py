@@ -120,3 +120,27 @@ def test_sun_irradiance_falls_back_to_the_selection_level_when_facings_disagree(
     E, source = reconcile_sun_irradiance(None, level)
     assert np.allclose(E, level) and source.startswith("selection")
     assert np.all(np.isfinite(reconcile_sun_irradiance(np.zeros(3), level)[0]))
+
+
+def test_light_is_raised_until_the_albedo_stops_clipping():
+    from mi_invrgbl.fit.shading_init import ALBEDO_CEILING, albedo_from_shading, light_scale
+    s = _street(missed=0.0)
+    shading = s["sky"] + s["E"][None] * (s["traced"] * s["cos"])[:, None] / np.pi
+    # Light that explains the colours with plausible albedo is left alone.
+    assert light_scale(s["colour"], shading, s["seen"]) == 1.0
+    # A sky term 20x too dark (a bridge overhead, no interreflection in the
+    # model): most albedo would clip; the scale brings the 95th percentile
+    # back under the ceiling and the albedo reproduces the colours again.
+    dark = shading / 20.0
+    assert np.mean(albedo_from_shading(s["colour"], dark, 0.0) >= 1.0) > 0.5
+    k = light_scale(s["colour"], dark, s["seen"])
+    assert 10.0 < k < 40.0
+    albedo = albedo_from_shading(s["colour"], k * dark, 0.0)
+    assert np.quantile(albedo.max(axis=1), 0.95) <= ALBEDO_CEILING + 1e-9
+    assert np.mean(np.abs(albedo * k * dark - s["colour"]) < 1e-9) > 0.94
+    # Unseen, NaN and zero-shading Gaussians do not drive it; nothing seen: 1.
+    bad = s["colour"].copy()
+    bad[:10] = np.nan
+    assert np.isfinite(light_scale(bad, dark, s["seen"]))
+    assert light_scale(s["colour"], dark, np.zeros_like(s["seen"])) == 1.0
+    assert light_scale(s["colour"], np.zeros_like(dark), s["seen"]) <= 100.0

@@ -190,11 +190,17 @@ def choose_lidar_lobe(ctx: FitState, stage2, frozen) -> LobeChoice:
     return LobeChoice(result)
 
 
-def choose_render_samples(ctx: FitState, stage2, frozen, candidates=(4, 8, 16, 32)) -> dict:
+def choose_render_samples(ctx: FitState, stage2, frozen, candidates=(4, 8, 16, 32),
+                          deadline=None) -> dict:
     """Sky samples M for rendering the fitted scene: the smallest whose
     validation PSNR is within 0.1 dB of the best. Each is scored on up to
     three validation frames with its own traced sky visibility; the fit
-    itself keeps ``samples``."""
+    itself keeps ``samples``.
+
+    With a ``deadline`` (``time.perf_counter()`` seconds; a budgeted fit),
+    the fit's own M is scored first (its visibility is cached) and another M
+    only where its predicted time (its share of what freezing traced, or
+    the last fresh M's time per sample) still fits before the deadline."""
     cfg = ctx.config
     fitted = cfg.samples
     if cfg.render_samples != "auto":
@@ -203,8 +209,14 @@ def choose_render_samples(ctx: FitState, stage2, frozen, candidates=(4, 8, 16, 3
     frames = frames[:3]
     if not frames or cfg.weights.rgb == 0:
         return {"samples": fitted, "reason": "no camera frame to score on"}
-    scores = {}
-    for m in candidates:
+    scores, skipped = {}, []
+    per_sample = ctx.times.get("freeze", 0.0) * len(frames) / max(len(ctx.observations), 1) / fitted
+    order = [fitted] + sorted(m for m in set(candidates) if m != fitted)
+    for m in order:
+        if deadline is not None and m != fitted \
+                and time.perf_counter() + per_sample * m > deadline:
+            skipped.append(m)
+            continue
         # The fit's own caches already hold the visibility for its M. Other M
         # get fresh caches, shared by the frames that shared one, so a static
         # scene traces its visibility once per M.
@@ -214,8 +226,14 @@ def choose_render_samples(ctx: FitState, stage2, frozen, candidates=(4, 8, 16, 3
             caches[f.index] = old if m == fitted else fresh.setdefault(id(old), LightingCache())
         t = time.perf_counter()
         p, _ = score_stage2(stage2, frames, samples=m, caches=caches)
-        scores[m] = {"psnr": p, "seconds": time.perf_counter() - t}
+        seconds = time.perf_counter() - t
+        scores[m] = {"psnr": p, "seconds": seconds}
+        if m != fitted:
+            per_sample = seconds / m
     best = max(v["psnr"] for v in scores.values())
     chosen = min(m for m, v in scores.items() if v["psnr"] >= best - 0.1)
-    return {"samples": chosen, "fitted_with": fitted, "scored_on": scored_on,
-            "by_samples": {str(m): v for m, v in scores.items()}}
+    out = {"samples": chosen, "fitted_with": fitted, "scored_on": scored_on,
+           "by_samples": {str(m): scores[m] for m in sorted(scores)}}
+    if skipped:
+        out["skipped_for_budget"] = skipped
+    return out

@@ -94,7 +94,9 @@ def run_fit(scene_path, config: FitConfig, log=print):
         apply_lidar_lobe(state, lobe)
         state.times["lobe selection"] = time.perf_counter() - t
         t = time.perf_counter()
-        state.selection["samples"] = choose_render_samples(state, stage2, frozen)
+        state.selection["samples"] = choose_render_samples(
+            state, stage2, frozen,
+            deadline=None if budget is None else budget.deadline - 0.05 * 60 * budget.minutes)
         state.times["samples selection"] = time.perf_counter() - t
         log_choices(state)
         checkpoint("done", last)
@@ -176,11 +178,12 @@ def fit_materials(state: FitState, stage2, start, checkpoint, budget=None):
         t = time.perf_counter()
         spi = time_iterations(stage2.iteration, 1)
         start = 1 + TIMED
-        # Leave time for what follows: the LiDAR lobe's refit, the choice of M
-        # (sky visibility traced again for M = 4, 8, 32: about three times what
-        # freezing traced for the fit's M) and the outputs (5 % of the budget).
-        reserve = (state.config.lobe_iterations * spi + 3 * state.times.get("freeze", 0.0)
-                   + 0.05 * 60 * budget.minutes)
+        # Leave time for what follows: the LiDAR lobe's refit and the outputs
+        # (5 % of the budget). The choice of M for rendering takes only what
+        # is left then (it keeps the fit's M when nothing is): it re-traces
+        # sky visibility, up to three times what freezing traced, which on
+        # a short budget would starve stage 2.
+        reserve = state.config.lobe_iterations * spi + 0.05 * 60 * budget.minutes
         seconds = max(0.0, min(budget.share("stage 2"), budget.left() - reserve))
         plan = plan_stage("stage 2", seconds, spi, done=start, batched=False)
         if seconds < budget.share("stage 2"):
@@ -242,6 +245,11 @@ def freeze(state: FitState, initialise):
                       % (np.round(si["sun_irradiance"], 3).tolist(),
                          "them" if source == "facings" else "the lighting " + source,
                          si["facings"], 100 * si["shadowed"]))
+        if "light_scale_scores" in si:
+            state.log("[fit] light level at stage 2's start: %.2fx the fitted sky and sun (under "
+                      "the fitted light the albedo reproducing stage 1 would clip at 1; starting "
+                      "PSNR %s)" % (si["light_scale"], ", ".join(
+                          "%sx %.2f dB" % kv for kv in si["light_scale_scores"].items())))
     # Trace the per-Gaussian visibility now (it is cached on first use),
     # so that it is counted here and not in the first stage-2 iteration.
     with dr.suspend_grad():

@@ -22,7 +22,9 @@ Gaussians near an edge are often in the wrong group, while the bulk of open
 sun and deep shadow is not.
 
 The albedo then starts at ``c / (D + E v cos / pi)``, so stage 2 starts from
-an image that already matches stage 1 instead of first fighting a wrong level.
+an image that already matches stage 1 instead of first fighting a wrong level;
+where that albedo would clip at 1 for many Gaussians, sky and sun are raised
+first (:func:`light_scale`).
 """
 
 from __future__ import annotations
@@ -149,6 +151,33 @@ def visibility_from_lidar_albedo(colour, sky_term, sun_irradiance, visibility, c
     out[change] = np.clip(implied[change], 0.0, 1.0)
     n = max(seen.sum(), 1)
     return out, float(lower.sum() / n), float(raise_.sum() / n)
+
+
+#: Quantile of the seen Gaussians' required albedo (largest channel) that
+#: :func:`light_scale` brings down to :data:`ALBEDO_CEILING`.
+CLIP_QUANTILE = 0.95
+ALBEDO_CEILING = 0.9
+#: Most the light is raised (a darker scene is a failed stage 1, not dim light).
+MAX_LIGHT_SCALE = 100.0
+
+
+def light_scale(colour, shading, seen):
+    """Factor by which sky and sun must be raised so that the albedo which
+    reproduces ``colour`` under ``shading`` (``c / shading``) stays below
+    :data:`ALBEDO_CEILING` for all but the brightest 5 % of the ``seen``
+    Gaussians; 1 when it already does (light is never lowered: the
+    lighting selection's level stands where it is plausible).
+
+    The shading model has no interreflection, so under a bridge or between
+    tall extended walls the traced sky term can be far darker than the
+    light the images show; clipped albedo cannot reproduce stage 1 and
+    stage 2 would start several dB below it."""
+    ok = seen & np.all(np.isfinite(colour), axis=1) & np.all(np.isfinite(shading), axis=1)
+    if not ok.any():
+        return 1.0
+    need = np.max(colour[ok] / np.maximum(shading[ok], 1e-3), axis=1)
+    q = float(np.quantile(need, CLIP_QUANTILE))
+    return float(np.clip(q / ALBEDO_CEILING, 1.0, MAX_LIGHT_SCALE))
 
 
 def albedo_from_shading(colour, sky_term, sun_term):

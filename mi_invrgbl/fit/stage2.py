@@ -220,12 +220,12 @@ class Stage2:
             D = shading_init.as_rows(lighting.diffuse_sky)
             colour = np.concatenate([model.nodes[n].numpy("colour") for n in names])
             sun_term = np.zeros_like(D)
+            seen = shading_init.seen_weight(
+                table, [(self.frozen.camera[f.index], f.camera.valid())
+                        for f in ctx.train_frames if f.index in self.frozen.camera]) > 0.05
             if suns:
                 normals = np.array(table.normal, np.float64).T
                 cos = np.maximum(np.sum(normals * sun_dir, axis=1), 0.0)
-                seen = shading_init.seen_weight(
-                    table, [(self.frozen.camera[f.index], f.camera.valid())
-                            for f in ctx.train_frames if f.index in self.frozen.camera]) > 0.05
                 rho = np.concatenate([model.nodes[n].numpy("lidar_albedo") for n in names]) \
                     if any(f.lidar is not None for f in ctx.train_frames) else None
                 E, groups = shading_init.estimate_sun_irradiance(colour, D, vis, cos, normals,
@@ -258,11 +258,56 @@ class Stage2:
                 report.update(sun_irradiance=E.tolist(), sun_irradiance_from=source,
                               facings=int(groups),
                               shadowed=float(np.mean(vis[seen] < 0.5)) if seen.any() else 0.0)
-            albedo = shading_init.albedo_from_shading(colour, D, sun_term)
-            for name, a in zip(names, shading_init.split_by_node(albedo, table, counts)):
-                model.nodes[name].values["albedo"] = mi.Float(a.astype(np.float32).ravel())
+            # Where the fitted light is too dark for the colours stage 1
+            # fitted, the albedo would clip at 1 and stage 2 would start far
+            # below stage 1 (KITTI under a bridge: sky term dark, 92 % of the
+            # albedo channels clipped, 16 -> 8 dB). Raising sky and sun
+            # together cures that but also brightens the sky seen directly,
+            # which costs PSNR where that sky is not saturated white. So the
+            # level is a choice: no raise, the full raise and the geometric
+            # mean between, each scored on the validation frames.
+            k_max = shading_init.light_scale(colour, D + sun_term, seen)
+            sky0, E0 = dr.detach(ctx.params[ctx.sky_key]), E if suns else None
+            levels = [1.0] if k_max <= 1.0 else [1.0, float(np.sqrt(k_max)), k_max]
+            scores = {}
+            for k in levels:
+                self._set_light_level(k, sky0, E0, colour, D, sun_term, names, table, counts)
+                if len(levels) > 1:
+                    score = self._starting_score()
+                    scores[k] = score if np.isfinite(score) else -np.inf
+            k = max(levels, key=lambda v: scores.get(v, 0.0))
+            if k != levels[-1]:
+                self._set_light_level(k, sky0, E0, colour, D, sun_term, names, table, counts)
+            if suns:
+                report["sun_irradiance"] = (E0 * k).tolist()
+            report["light_scale"] = float(k)
+            if scores:
+                report["light_scale_scores"] = {"%.3g" % v: sc for v, sc in scores.items()}
         self.build_optimizer()
         return report
+
+    def _set_light_level(self, k, sky0, E0, colour, D, sun_term, names, table, counts):
+        """Sky and sun at ``k`` times their fitted level and the albedo that
+        reproduces the stage-1 colours under them."""
+        ctx, model = self.ctx, self.ctx.model
+        ctx.params[ctx.sky_key] = sky0 * k
+        if E0 is not None:
+            ctx.params[ctx.sun_key] = mi.Color3f(*[float(x) for x in E0 * k])
+        ctx.params.update()
+        albedo = shading_init.albedo_from_shading(colour, D * k, sun_term * k)
+        for name, a in zip(names, shading_init.split_by_node(albedo, table, counts)):
+            model.nodes[name].values["albedo"] = mi.Float(a.astype(np.float32).ravel())
+        self.build_optimizer()
+
+    def _starting_score(self):
+        """Validation PSNR of the current starting point (up to three
+        validation frames; training frames when there are none)."""
+        from .evaluate import score_stage2
+        ctx = self.ctx
+        frames = [f for f in ctx.validation_frames if f.camera is not None][:3] \
+            or [f for f in ctx.train_frames if f.camera is not None][:3]
+        psnr, _ = score_stage2(self, frames)
+        return psnr
 
     # ---------------------------------------------------------- render
     def render_frame(self, frame, vals, camera=True, lidar=True, samples=None, caches=None):
