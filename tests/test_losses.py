@@ -91,6 +91,11 @@ def test_closed_forms():
     c = mi.Color3f([1, 0], [0, 0], [0, 2])
     assert L.rgb_loss(c, mi.Color3f(0))[0] == pytest.approx(5 / 6)
     assert L.rgb_loss(c, mi.Color3f(0), mask=mi.Bool([True, False]))[0] == pytest.approx(1 / 3)
+    # Saturated channels (target 1) are lower bounds: above costs nothing.
+    sat = mi.Color3f([1.5, 0.5], [1.0, 1.0], [0.2, 0.2])
+    assert L.rgb_loss(sat, mi.Color3f(1.0))[0] == pytest.approx((0.25 + 0.64 * 2) / 6)
+    assert L.rgb_loss(mi.Float([3.0, 0.0]), mi.Float([0.98, 0.98]))[0] == pytest.approx(
+        ((3 - 0.98) ** 2 + 0.98 ** 2) / 2)
     m = mi.Bool([True, False, True])
     assert L.lidar_loss(mi.Float([1, 5, 3]), mi.Float([0, 0, 0]), m)[0] == pytest.approx(5.0)
     assert L.range_loss(mi.Float([1, 5, -3]), mi.Float(0), m)[0] == pytest.approx(2.0)

@@ -123,15 +123,30 @@ def _pair(pred, target, name):
 
 
 # ---------------------------------------------------------------- fidelity
+#: Observed linear values at or above this are saturated (8-bit 254 reads
+#: 0.991 after the sRGB curve): the radiance there was at least that.
+SATURATED = 0.99
+
+
 def rgb_loss(pred, target, mask=None):
     r"""Camera fidelity :math:`\mathcal{L}_{rgb} = \Vert\hat C - C\Vert_2^2` (paper Eq. 6), as a mean.
 
     ``pred`` / ``target``: linear RGB (Color3f per pixel or interleaved Float);
     ``mask`` (optional, per pixel) excludes pixels, e.g. the supplement's
     lighting mask :math:`M_{light}` for over-exposed light sources.
+
+    A saturated channel (``target >= SATURATED``) only says the radiance was
+    at least that much: a prediction above it costs nothing, one below it
+    costs as usual. Without this, a white sky clipped by the camera holds
+    the fitted sky (and with it all sky light on the scene) at the clip
+    level, and under a bridge the albedo that reproduces the images then
+    has to exceed 1 (the paper masks over-exposed light sources instead;
+    this keeps the lower bound they give).
     """
     pred, target = _pair(pred, target, "rgb_loss")
-    return _masked_mean(dr.square(pred - target), mask)
+    diff = pred - target
+    diff = dr.select((dr.detach(target) >= SATURATED) & (diff > 0), 0.0, diff)
+    return _masked_mean(dr.square(diff), mask)
 
 
 def lidar_loss(pred, target, mask):

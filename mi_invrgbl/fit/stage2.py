@@ -264,11 +264,11 @@ class Stage2:
             # albedo channels clipped, 16 -> 8 dB). Raising sky and sun
             # together cures that but also brightens the sky seen directly,
             # which costs PSNR where that sky is not saturated white. So the
-            # level is a choice: no raise, the full raise and the geometric
-            # mean between, each scored on the validation frames.
+            # level is a choice: no raise, the full raise and three steps
+            # between (geometric), each scored on the validation frames.
             k_max = shading_init.light_scale(colour, D + sun_term, seen)
             sky0, E0 = dr.detach(ctx.params[ctx.sky_key]), E if suns else None
-            levels = [1.0] if k_max <= 1.0 else [1.0, float(np.sqrt(k_max)), k_max]
+            levels = [1.0] if k_max <= 1.0 else [float(k_max ** q) for q in (0, 0.25, 0.5, 0.75, 1)]
             scores = {}
             for k in levels:
                 self._set_light_level(k, sky0, E0, colour, D, sun_term, names, table, counts)

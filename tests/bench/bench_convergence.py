@@ -55,7 +55,7 @@ class Row:
     budget_min: float
     stage1: int
     stage2: int
-    over_budget: bool
+    over_budget: bool = False      # (absent from rows of fits with --budget, which keep to it)
     psnr: float | None = None
     ssim: float | None = None
     albedo_rmse: float | None = None
