@@ -128,18 +128,17 @@ def _sigmoid(x):
 
 #: Geometry: centre, extent, orientation, opacity (optimised in stage 1).
 #: Opacity stays within logit +-9 so that log(1 - a) stays finite.
-#: The shape's rates (log-scale, rotation, opacity logit) are 3x what they
-#: were until 2026-11: on the KITTI excerpt 300 stage-1 steps then reach
-#: 17.95 dB held-out instead of 16.71 (scale alone 17.36, rotation alone
-#: 17.06, opacity alone 16.68); on the synthetic street they make no
-#: difference (24.0 against 24.1 dB at 300 steps).
+#: (3x the shape's rates -- log-scale, rotation, opacity logit -- lifted the
+#: KITTI excerpt's stage 1 from 16.71 to 17.95 dB at 300 steps, but the test
+#: scene's fitted LiDAR range exponent then drifted from 2 to 4.4, so these
+#: rates stay until the stage-2 side of that is understood.)
 GEOMETRY = (
     GaussianField("center", "centers", 3, None, None, 2e-3, 1, ("x", "y", "z")),
-    GaussianField("scale", "scales", 3, 0.01, (1e-4, 5.0), 1.5e-2, 1,
+    GaussianField("scale", "scales", 3, 0.01, (1e-4, 5.0), 5e-3, 1,
                   ("scale_0", "scale_1", "scale_2"), "log"),
-    GaussianField("rotation", "quaternions", 4, None, None, 6e-3, 1,
+    GaussianField("rotation", "quaternions", 4, None, None, 2e-3, 1,
                   ("rot_0", "rot_1", "rot_2", "rot_3"), "quaternion"),
-    GaussianField("opacity", "opacities", 1, 1.0, (_sigmoid(-9.0), _sigmoid(9.0)), 6e-2, 1,
+    GaussianField("opacity", "opacities", 1, 1.0, (_sigmoid(-9.0), _sigmoid(9.0)), 2e-2, 1,
                   ("opacity",), "logit"),
 )
 
