@@ -249,7 +249,8 @@ def freeze(state: FitState, initialise):
             state.log("[fit] light level at stage 2's start: %.2fx the fitted sky and sun (under "
                       "the fitted light the albedo reproducing stage 1 would clip at 1; starting "
                       "PSNR %s)" % (si["light_scale"], ", ".join(
-                          "%sx %.2f dB" % kv for kv in si["light_scale_scores"].items())))
+                          "%sx %s dB" % (k, "-" if v is None else "%.2f" % v)
+                          for k, v in si["light_scale_scores"].items())))
     # Trace the per-Gaussian visibility now (it is cached on first use),
     # so that it is counted here and not in the first stage-2 iteration.
     with dr.suspend_grad():

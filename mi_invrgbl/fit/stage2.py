@@ -282,7 +282,8 @@ class Stage2:
                 report["sun_irradiance"] = (E0 * k).tolist()
             report["light_scale"] = float(k)
             if scores:
-                report["light_scale_scores"] = {"%.3g" % v: sc for v, sc in scores.items()}
+                report["light_scale_scores"] = {"%.3g" % v: sc if np.isfinite(sc) else None
+                                                for v, sc in scores.items()}
         self.build_optimizer()
         return report
 
