@@ -301,12 +301,10 @@ class Stage2:
         self.build_optimizer()
 
     def _starting_score(self):
-        """Validation PSNR of the current starting point (up to three
-        validation frames; training frames when there are none)."""
+        """PSNR of the current starting point on up to three of the frames
+        that score model choices (:attr:`FitState.selection_frames`)."""
         from .evaluate import score_stage2
-        ctx = self.ctx
-        frames = [f for f in ctx.validation_frames if f.camera is not None][:3] \
-            or [f for f in ctx.train_frames if f.camera is not None][:3]
+        frames = [f for f in self.ctx.selection_frames if f.camera is not None][:3]
         psnr, _ = score_stage2(self, frames)
         return psnr
 
