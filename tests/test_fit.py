@@ -338,9 +338,10 @@ def test_resume_refuses_a_checkpoint_of_another_fit(scene_path, tmp_path):
 
 
 def test_densify_carries_adam_moments(scene_path, tmp_path):
-    # Kept and cloned Gaussians continue with their Adam moments; split
-    # halves (moved and shrunk) start from zero. Rows are matched by their
-    # centres, which keeping and cloning copy exactly.
+    # Kept Gaussians continue with their Adam moments. Clones and split
+    # halves take their parent's second moment and a zero first moment, so
+    # that they step at the usual size on their own gradients. A clone and
+    # its parent share the parent's opacity a: (1 - a')^2 = 1 - a.
     from mi_invrgbl.fit.init import load_state
     from mi_invrgbl.fit.stage1 import Stage1
     # (The scene's Gaussians start at opacity 0.95 and sizes 0.15-0.18 m: these
@@ -354,22 +355,37 @@ def test_densify_carries_adam_moments(scene_path, tmp_path):
     key = "background.center"
     t0, m0, v0 = s1.opt.moments(key)
     s1.pull()
-    old = state.model.nodes["background"].numpy("center")
+    node = state.model.nodes["background"]
+    old = node.numpy("center")
+    old_opacity = state.model.cloud("background", stage=1).opacities
     report = s1.densify()
     pruned, cloned, split, count = report["background"]
     assert pruned > 0 and cloned > 0 and split > 0, report
+    assert count == old.shape[0] - pruned - split + cloned + 2 * split
     t1, m1, v1 = s1.opt.moments(key)
     new = state.model.nodes["background"].numpy("center")
+    new_opacity = state.model.cloud("background", stage=1).opacities
     assert new.shape[0] == count and m1.size == 3 * count
     assert int(np.ravel(t1)[0]) == int(np.ravel(t0)[0])
-    where = {tuple(c): i for i, c in enumerate(old)}
     m0, v0, m1, v1 = (a.reshape(-1, 3) for a in (m0, v0, m1, v1))
+    assert np.abs(m0).max() > 0                         # the moments were not zero to begin with
+    where = {tuple(c): i for i, c in enumerate(old)}
     parent = np.array([where.get(tuple(c), -1) for c in new])
-    kept = parent >= 0
-    assert kept.sum() == count - 2 * split
+    n_kept = count - cloned - 2 * split
+    kept, clones, halves = np.arange(n_kept), np.arange(n_kept, n_kept + cloned), \
+        np.arange(n_kept + cloned, count)
+    assert (parent[kept] >= 0).all() and (parent[clones] >= 0).all()
     assert np.array_equal(m1[kept], m0[parent[kept]]) and np.array_equal(v1[kept], v0[parent[kept]])
-    assert np.abs(m0[parent[kept]]).max() > 0           # the moments were not zero to begin with
-    assert not m1[~kept].any() and not v1[~kept].any()
+    # Fresh rows: zero first moment, the parent's second moment.
+    assert not m1[clones].any() and not m1[halves].any()
+    assert np.array_equal(v1[clones], v0[parent[clones]])
+    assert (v1[halves] > 0).any()
+    # A clone and its parent (the kept row with the same centre) share the opacity.
+    a = old_opacity[parent[clones]]
+    expect = 1.0 - np.sqrt(1.0 - a)
+    assert np.allclose(new_opacity[clones], expect, atol=2e-3)
+    twin = {tuple(new[i]): i for i in kept}
+    assert np.allclose(new_opacity[[twin[tuple(new[i])] for i in clones]], expect, atol=2e-3)
     # The optimiser goes on stepping over the new arrays.
     loss, _, ok = s1.iteration(4)
     assert ok and np.isfinite(loss)

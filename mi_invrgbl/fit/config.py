@@ -38,7 +38,14 @@ class FitConfig:
     prune_opacity: float = 0.02
     densify_grad: float = 1e-7
     densify_fraction: float = 0.02
-    split_scale: float = 0.3
+    #: Densification splits a growing Gaussian larger than this (metres,
+    #: largest axis) in two and clones a smaller one. 0: every growing
+    #: Gaussian is split. Clones hurt on the street: with the split size at
+    #: 0.3 m (most growing Gaussians cloned) stage 1's held-out PSNR fell from
+    #: 24.6 dB at step 150 to 23.4 at 300, splitting them all kept it rising
+    #: to 25.5 dB at 400 (as without densification); on the KITTI excerpt the
+    #: two were alike at 300 steps.
+    split_scale: float = 0.0
     max_gaussians: int = 800000
     stage1_range: float = 1.0
     stage1_drop: float = 0.1

@@ -13,8 +13,9 @@ Batches are drawn only from the pixels and beams that count
 (:meth:`~.observations.Masked.valid_index`: motion masks left out).
 
 Every ``densify_every`` iterations Gaussians that are nearly transparent are
-pruned and those with large positional gradients are split (large ones) or
-cloned (small ones), as in 3D Gaussian Splatting, up to ``max_gaussians``.
+pruned and those with large positional gradients are split in two smaller
+ones, up to ``max_gaussians`` (3D Gaussian Splatting clones the small ones
+instead; ``split_scale`` does that above a size, and measured worse here).
 """
 
 from __future__ import annotations
@@ -172,7 +173,7 @@ class Stage1:
         """Prune transparent Gaussians, split/clone those with large gradients."""
         cfg = self.ctx.config
         self.pull()
-        report, parents = {}, {}
+        report, parents, fresh = {}, {}, {}
         total_now = self.model.total
         for name, node in self.model.nodes.items():
             cloud = self.model.cloud(name, stage=1)
@@ -198,15 +199,23 @@ class Stage1:
             big = cloud.scales.max(axis=1) > cfg.split_scale
             split = grow & big
             clone = grow & ~big
-            # Rows of the new arrays: kept Gaussians and clones continue a row
-            # of the old ones (and its Adam moments); split halves are new.
+            # A clone and its parent share the parent's opacity a so that the
+            # pair lets through what the parent did: (1 - a')^2 = 1 - a (a
+            # full-opacity copy thickens the surface). Clones still cost
+            # fidelity on the street (``FitConfig.split_scale``), so by default
+            # every growing Gaussian is split instead.
+            cloud.opacities = np.where(clone, 1.0 - np.sqrt(np.clip(1.0 - cloud.opacities, 0, 1)),
+                                       cloud.opacities).astype(np.float32)
+            # Rows of the new arrays: the row of the old ones each comes from.
+            # Kept Gaussians continue theirs (and its Adam moments); clones
+            # and split halves are fresh (Optimizer.rebuild).
             rows = [np.nonzero(keep & ~split)[0]]
             parts = [cloud.subset(keep & ~split)]
             if clone.any():
                 parts.append(cloud.subset(clone))
                 rows.append(np.nonzero(clone)[0])
             if split.any():
-                rows.append(np.full(2 * int(split.sum()), -1))
+                rows.append(np.tile(np.nonzero(split)[0], 2))
                 for sign in (-1.0, 1.0):
                     s = cloud.subset(split)
                     rot = _rotation(s.quaternions)
@@ -218,9 +227,10 @@ class Stage1:
             node = self.model.nodes[name]
             report[name] = (int((~keep).sum()), int(clone.sum()), int(split.sum()), node.count)
             parents[name] = np.concatenate(rows)
+            fresh[name] = np.arange(len(parents[name])) >= len(rows[0])
             total_now = total_now - len(cloud) + node.count
         self.grad_accum = {}
-        self.opt = self.opt.rebuild(self.variables(), parents)
+        self.opt = self.opt.rebuild(self.variables(), parents, fresh)
         return report
 
 

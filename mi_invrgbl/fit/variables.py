@@ -189,15 +189,22 @@ class Optimizer:
         _, _, _, (t, m, v, _) = self.adam.state[key]
         return t, np.array(m, np.float32), np.array(v, np.float32)
 
-    def rebuild(self, variables, parents: dict):
+    def rebuild(self, variables, parents: dict, fresh: dict | None = None):
         """A new optimiser over ``variables`` (same keys, new Gaussian counts).
 
         ``parents[node]`` gives, per Gaussian of the node's new arrays, the
-        row of the old arrays it continues (-1: a new Gaussian). Its Adam
-        moments move with it; new Gaussians start at zero, other variables
-        (the sky) keep theirs. Learning rates start afresh.
+        row of the old arrays it comes from (-1: none); its Adam moments
+        move with it. Where ``fresh[node]`` is True (a clone, a split half)
+        the row takes only its parent's second moment and starts its first
+        moment at zero: it then steps on its own gradients at the usual
+        step size. (Zero second moments under Adam's late step count would
+        make its steps several times the learning rate for hundreds of
+        iterations; the parent's first moment would make a clone repeat its
+        parent's steps.) Rows without a parent start at zero; other
+        variables (the sky) keep their state. Learning rates start afresh.
         """
         new = Optimizer(variables)
+        fresh = fresh or {}
         for key, var in new.variables.items():
             if key not in self.variables:
                 continue
@@ -211,7 +218,8 @@ class Optimizer:
             m, v = m.reshape(-1, w), v.reshape(-1, w)
             alive = parent >= 0
             src = np.where(alive, parent, 0)
-            set_moments(new.adam, key, t, np.where(alive[:, None], m[src], 0.0).ravel(),
+            first = alive & ~fresh.get(var.node, np.zeros(len(parent), bool))
+            set_moments(new.adam, key, t, np.where(first[:, None], m[src], 0.0).ravel(),
                         np.where(alive[:, None], v[src], 0.0).ravel())
         return new
 
