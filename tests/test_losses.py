@@ -135,6 +135,21 @@ def test_grad_rgb_and_prior():
     check(val, g, lambda y: np.mean((y - tgt) ** 2), x)
 
 
+def test_grad_rgb_saturated_channels():
+    # Half the targets at the camera's clip (a lower bound): predictions
+    # above them have zero gradient, below them the usual 2 (y - t) / n.
+    # Predictions stay 0.05 from the kink so the finite differences do not
+    # straddle it.
+    n = 24
+    tgt = np.where(np.arange(n) % 2 == 0, 1.0, RNG.uniform(0.1, 0.8, n))
+    x = tgt + np.where(RNG.uniform(size=n) > 0.5, 1, -1) * RNG.uniform(0.05, 0.4, n)
+    ref = lambda y: np.mean(np.where((tgt >= L.SATURATED) & (y > tgt), 0.0, y - tgt) ** 2)  # noqa: E731
+    val, g = dr_grad(lambda v: L.rgb_loss(v, mi.Float(tgt.astype(np.float32))), x, lambda v: v)
+    check(val, g, ref, x)
+    above = (tgt >= L.SATURATED) & (x > tgt)
+    assert above.any() and not g[above].any() and g[~above].all()
+
+
 def test_grad_lidar_range_raydrop():
     n = 20
     x = RNG.uniform(0.05, 0.95, n)
