@@ -475,3 +475,44 @@ def test_budget_sets_iterations_and_stops_in_time(scene_path, tmp_path):
     # The iteration counts came from the budget, not --stage1/--stage2 (10 and 24 here).
     assert plans["stage 1"]["iterations"] != 10
     assert metrics["interrupted"] is False and np.isfinite(metrics["heldout_psnr"])
+
+
+@pytest.mark.parametrize("trial", [4, 0])
+def test_sun_trial_decides_a_narrowly_rejected_sun(scene_path, tmp_path, monkeypatch, trial):
+    # The sun test is made to reject its sun narrowly (gain 0.03, bar 0.05):
+    # stage 2 then runs `trial` iterations without and with it, scores both
+    # on the validation frames only and keeps the better. With --sun-trial 0
+    # the test's decision stands.
+    from mi_invrgbl.fit import runner
+    real_choose, real_score = runner.choose_lighting, runner.score_stage2
+    scored = []
+
+    def narrowly_rejected(state):
+        choice = real_choose(state)
+        sun = choice.report["sun"]
+        sun.update(gain=0.03, use_sun=False, direction=sun.get("direction", [0.3, 0.4, 0.866]))
+        choice.use_sun, choice.sun_direction, choice.sun_irradiance = False, None, 0.0
+        return choice
+
+    def score_spy(stage2, frames, *a, **k):
+        scored.append([f.index for f in frames])
+        return real_score(stage2, frames, *a, **k)
+
+    monkeypatch.setattr(runner, "choose_lighting", narrowly_rejected)
+    monkeypatch.setattr(runner, "score_stage2", score_spy)
+    metrics = run_fit(scene_path, small_config(tmp_path, stage2_iterations=10,
+                                               sun_trial_iterations=trial), log=lambda *a: None)
+    sun = metrics["selection"]["sun"]
+    assert np.isfinite(metrics["heldout_psnr"])
+    if trial == 0:
+        assert "trial" not in sun and sun["use_sun"] is False
+        return
+    t = sun["trial"]
+    assert t["iterations"] == 4 and np.isfinite(t["psnr_without"]) and np.isfinite(t["psnr_with"])
+    assert sun["use_sun"] == (t["psnr_with"] > t["psnr_without"] + 0.2)
+    # The trial's scores come from the validation frame (2); held-out 4 only in the log.
+    trial_scores = [s for s in scored if 4 not in s]
+    assert trial_scores and all(s == [2] for s in trial_scores)
+    lighting = metrics.get("lighting") or {}
+    if "sun_used" in lighting:
+        assert lighting["sun_used"] == sun["use_sun"]

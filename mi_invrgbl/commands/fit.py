@@ -38,6 +38,9 @@ FLAGS = (
     ("--sigma", "bilateral_sigma", "bilateral sigma of L_rgb->lidar", {}),
     ("--sun", "sun", "use a sun: decided from the data (auto) or forced",
      {"choices": ("auto", "on", "off")}),
+    ("--sun-trial", "sun_trial_iterations",
+     "stage-2 iterations with and without a sun the sun test rejected narrowly; the lighting "
+     "scoring higher on the validation frames is kept (0: the test decides alone)", {}),
     ("--sh-order", "sh_order", "SH order of the sky: decided from the visible sky (auto) or forced",
      {"choices": ("auto", "0", "1", "2", "3")}),
     ("--lidar-model", "lidar_model",

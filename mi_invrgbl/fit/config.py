@@ -54,6 +54,11 @@ class FitConfig:
     seed: int = 0
     resume: bool = False
     sun: str = "auto"            # auto | on | off
+    #: With ``sun="auto"``: where the sun test rejected a sun by a small
+    #: margin (:data:`.model_selection.SUN_TRIAL_GAIN`), stage 2 runs this
+    #: many iterations with and without it and keeps the lighting that
+    #: scores higher on the validation frames (0: the test decides alone).
+    sun_trial_iterations: int = 100
     sh_order: str = "auto"       # auto | 0..3
     lidar_model: str = "auto"    # auto | pbr | lambertian
     fit_response: bool = True

@@ -43,8 +43,9 @@ from .config import FitConfig  # noqa: F401  (the fit's options, imported from h
 from .evaluate import score_stage1, score_stage2
 from .init import init_materials, load_state, sh_mask
 from .loop import Interrupted, StageRun, record_point, train
-from .model_selection import (LightingChoice, LobeChoice, choose_lidar_lobe, choose_lighting,
-                              choose_render_samples, log_lighting)
+from .model_selection import (SUN_TRIAL_MARGIN, LightingChoice, LobeChoice, choose_lidar_lobe,
+                              choose_lighting, choose_render_samples, log_lighting,
+                              sun_alternative)
 from .progress import SpeedErrorLog
 from .stage1 import Stage1
 from .stage2 import FrozenScene, Stage2
@@ -72,7 +73,7 @@ def run_fit(scene_path, config: FitConfig, log=print):
         stage, start = meta["stage"], int(meta["iteration"])
         state.wall_offset = float(meta.get("wall_s", 0.0))
         log("[fit] resuming from %s, %s iteration %d" % (checkpoint_path(state), stage, start))
-    stage2 = None
+    stage2, lighting = None, None
     try:
         if stage == "stage 1":
             fit_geometry(state, start, opt_state, checkpoint, budget)
@@ -86,7 +87,15 @@ def run_fit(scene_path, config: FitConfig, log=print):
         stage2, frozen = freeze(state, initialise=start == 0)
         if opt_state:
             restore_optimizer(stage2.opt.adam, opt_state)
-        last = fit_materials(state, stage2, start, checkpoint, budget)
+        fresh, alternative = start == 0, None
+        if fresh and lighting is not None:
+            # (A fit resumed from stage 2's first checkpoint keeps the test's
+            # decision: the trial needs the lighting choice of this run.)
+            alternative = sun_alternative(state, lighting)
+        if alternative is not None:
+            stage2 = sun_trial(state, frozen, stage2, lighting, alternative)
+            start = state.config.sun_trial_iterations
+        last = fit_materials(state, stage2, start, checkpoint, budget, fresh=fresh)
         stage2.commit()
         report_sun_refinement(state)
         t = time.perf_counter()
@@ -168,16 +177,20 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
     state.model.push(state.train_frames[0].poses, stage=1)
 
 
-def fit_materials(state: FitState, stage2, start, checkpoint, budget=None):
-    """Stage 2 from iteration ``start``; returns the last iteration."""
+def fit_materials(state: FitState, stage2, start, checkpoint, budget=None, fresh=None):
+    """Stage 2 from iteration ``start``; returns the last iteration.
+
+    ``fresh`` (default: ``start == 0``): the stage starts in this run, after
+    ``start`` iterations of the sun trial, so a budget is planned here."""
+    fresh = start == 0 if fresh is None else fresh
     total = planned(state, "stage 2", state.config.stage2_iterations)
     run = StageRun("stage 2", stage2.iteration, lambda: score_stage2(stage2, state.held_out_frames),
                    lambda name, it: checkpoint(name, it, stage2.opt.adam))
-    if budget is not None and start == 0:
-        record_point(state, run, 0)   # before the timed iterations move it
+    if budget is not None and fresh:
+        record_point(state, run, start)   # before the timed iterations move it
         t = time.perf_counter()
-        spi = time_iterations(stage2.iteration, 1)
-        start = 1 + TIMED
+        spi = time_iterations(stage2.iteration, start + 1)
+        start += 1 + TIMED
         # Leave time for what follows: the LiDAR lobe's refit and the outputs
         # (5 % of the budget). The choice of M for rendering takes only what
         # is left then (it keeps the fit's M when nothing is): it re-traces
@@ -234,6 +247,21 @@ def freeze(state: FitState, initialise):
     if initialise:
         init_materials(state, frozen)
     t = time.perf_counter()
+    stage2 = start_stage2(state, frozen, initialise)
+    # Trace the per-Gaussian visibility now (it is cached on first use),
+    # so that it is counted here and not in the first stage-2 iteration.
+    with dr.suspend_grad():
+        stage2.render_frame(state.train_frames[0], stage2.values(), lidar=False)
+    state.times["freeze"] = traced + time.perf_counter() - t
+    state.log("[fit] geometry frozen: %d frames traced once, %.1f MB of hit lists, visibility "
+              "cached; %.1f s" % (len(state.observations), frozen.nbytes() / 2**20,
+                                  state.times["freeze"]))
+    return stage2, frozen
+
+
+def start_stage2(state: FitState, frozen, initialise=True):
+    """Stage 2 on the frozen geometry under the scene's current lighting;
+    with ``initialise``, its starting shading (:meth:`Stage2.init_shading`)."""
     stage2 = Stage2(state, frozen)
     state.sun_visibility_learned = stage2.learn_sun_visibility
     if initialise:
@@ -251,15 +279,56 @@ def freeze(state: FitState, initialise):
                       "PSNR %s)" % (si["light_scale"], ", ".join(
                           "%sx %s dB" % (k, "-" if v is None else "%.2f" % v)
                           for k, v in si["light_scale_scores"].items())))
-    # Trace the per-Gaussian visibility now (it is cached on first use),
-    # so that it is counted here and not in the first stage-2 iteration.
-    with dr.suspend_grad():
-        stage2.render_frame(state.train_frames[0], stage2.values(), lidar=False)
-    state.times["freeze"] = traced + time.perf_counter() - t
-    state.log("[fit] geometry frozen: %d frames traced once, %.1f MB of hit lists, visibility "
-              "cached; %.1f s" % (len(state.observations), frozen.nbytes() / 2**20,
-                                  state.times["freeze"]))
-    return stage2, frozen
+    return stage2
+
+
+def sun_trial(state: FitState, frozen, stage2, lighting: LightingChoice,
+              alternative: LightingChoice):
+    """Run ``sun_trial_iterations`` of stage 2 under ``lighting`` (no sun),
+    then as many from the same start under ``alternative`` (the narrowly
+    rejected sun), score both on the validation frames and go on with the
+    one that scores higher (the sun by :data:`SUN_TRIAL_MARGIN`). Returns
+    the stage 2 to continue; its first ``sun_trial_iterations`` are done.
+
+    Both start from the same stage-1 result: the shading start is set again
+    for the sun, and the nodes' values and the step-size state are put back
+    for the lighting without it (its optimiser holds its own variables)."""
+    cfg = state.config
+    k = cfg.sun_trial_iterations
+    frames = [f for f in state.validation_frames if f.camera is not None]
+    t = time.perf_counter()
+    lr_start = dict(state.lr_state)
+    for it in range(1, k + 1):
+        stage2.iteration(it)
+    without = score_stage2(stage2, frames)[0]
+    kept_values = {name: dict(node.values) for name, node in state.model.nodes.items()}
+    kept = (dict(state.lr_state), state.selection.get("shading_init"), state.sun_visibility_learned)
+    apply_lighting(state, alternative)
+    state.lr_state.clear()
+    state.lr_state.update(lr_start)
+    with_sun = start_stage2(state, frozen)
+    for it in range(1, k + 1):
+        with_sun.iteration(it)
+    score = score_stage2(with_sun, frames)[0]
+    use = bool(np.isfinite(score) and (not np.isfinite(without) or score > without + SUN_TRIAL_MARGIN))
+    if use:
+        stage2 = with_sun
+    else:
+        apply_lighting(state, lighting)
+        for name, values in kept_values.items():
+            state.model.nodes[name].values = values
+        state.lr_state.clear()
+        state.lr_state.update(kept[0])
+        state.selection["shading_init"], state.sun_visibility_learned = kept[1], kept[2]
+    seconds = time.perf_counter() - t
+    state.selection["sun"]["trial"] = {"iterations": k, "psnr_without": without, "psnr_with": score,
+                                       "scored_on": "validation", "seconds": seconds}
+    state.selection["sun"]["use_sun"] = use
+    state.times["sun trial"] = seconds
+    state.log("[fit] sun trial: %d stage-2 iterations each, validation PSNR %.2f dB without the "
+              "sun, %.2f dB with it: %s (%.1f s)" % (k, without, score,
+                                                    "sun used" if use else "no sun", seconds))
+    return stage2
 
 
 def apply_lighting(ctx: FitState, choice: LightingChoice):
