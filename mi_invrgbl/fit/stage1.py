@@ -118,7 +118,7 @@ class Stage1:
         if cfg.densify_every and it % cfg.densify_every == 0 and it <= cfg.densify_until * total:
             report = self.densify()
             self.ctx.log("\n[fit] densify @%d: %s" % (it, ", ".join(
-                "%s -%d +%d clone +%d split = %d" % (n, *r) for n, r in report.items())))
+                "%s %d pruned, %d cloned, %d split: %d" % (n, *r) for n, r in report.items())))
 
     def _accumulate_gradients(self):
         # Positional gradient magnitude per Gaussian, for densification. Summed
