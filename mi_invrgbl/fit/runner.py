@@ -93,8 +93,11 @@ def run_fit(scene_path, config: FitConfig, log=print):
             # decision: the trial needs the lighting choice of this run.)
             alternative = sun_alternative(state, lighting)
         if alternative is not None:
-            stage2 = sun_trial(state, frozen, stage2, lighting, alternative)
-            start = state.config.sun_trial_iterations
+            # Without a budget the trial's iterations are part of the stage's
+            # count, so it never runs more than the stage would.
+            start = config.sun_trial_iterations if budget is not None else \
+                min(config.sun_trial_iterations, config.stage2_iterations)
+            stage2 = sun_trial(state, frozen, stage2, lighting, alternative, start)
         last = fit_materials(state, stage2, start, checkpoint, budget, fresh=fresh)
         stage2.commit()
         report_sun_refinement(state)
@@ -283,18 +286,16 @@ def start_stage2(state: FitState, frozen, initialise=True):
 
 
 def sun_trial(state: FitState, frozen, stage2, lighting: LightingChoice,
-              alternative: LightingChoice):
-    """Run ``sun_trial_iterations`` of stage 2 under ``lighting`` (no sun),
+              alternative: LightingChoice, k):
+    """Run ``k`` iterations of stage 2 under ``lighting`` (no sun),
     then as many from the same start under ``alternative`` (the narrowly
     rejected sun), score both on the validation frames and go on with the
     one that scores higher (the sun by :data:`SUN_TRIAL_MARGIN`). Returns
-    the stage 2 to continue; its first ``sun_trial_iterations`` are done.
+    the stage 2 to continue; its first ``k`` iterations are done.
 
     Both start from the same stage-1 result: the shading start is set again
     for the sun, and the nodes' values and the step-size state are put back
     for the lighting without it (its optimiser holds its own variables)."""
-    cfg = state.config
-    k = cfg.sun_trial_iterations
     frames = [f for f in state.validation_frames if f.camera is not None]
     t = time.perf_counter()
     lr_start = dict(state.lr_state)
