@@ -477,12 +477,14 @@ def test_budget_sets_iterations_and_stops_in_time(scene_path, tmp_path):
     assert metrics["interrupted"] is False and np.isfinite(metrics["heldout_psnr"])
 
 
-@pytest.mark.parametrize("trial", [4, 0])
-def test_sun_trial_decides_a_narrowly_rejected_sun(scene_path, tmp_path, monkeypatch, trial):
+@pytest.mark.parametrize("trial, unscorable", [(4, False), (0, False), (4, True)])
+def test_sun_trial_decides_a_narrowly_rejected_sun(scene_path, tmp_path, monkeypatch, trial,
+                                                   unscorable):
     # The sun test is made to reject its sun narrowly (gain 0.03, bar 0.05):
     # stage 2 then runs `trial` iterations without and with it, scores both
     # on the validation frames only and keeps the better. With --sun-trial 0
-    # the test's decision stands.
+    # the test's decision stands. When neither trial can be scored (NaN), the
+    # test's decision stands too, and metrics.json holds null, not NaN.
     from mi_invrgbl.fit import runner
     real_choose, real_score = runner.choose_lighting, runner.score_stage2
     scored = []
@@ -496,6 +498,8 @@ def test_sun_trial_decides_a_narrowly_rejected_sun(scene_path, tmp_path, monkeyp
 
     def score_spy(stage2, frames, *a, **k):
         scored.append([f.index for f in frames])
+        if unscorable and [f.index for f in frames] == [2]:
+            return float("nan"), float("nan")
         return real_score(stage2, frames, *a, **k)
 
     monkeypatch.setattr(runner, "choose_lighting", narrowly_rejected)
@@ -508,6 +512,15 @@ def test_sun_trial_decides_a_narrowly_rejected_sun(scene_path, tmp_path, monkeyp
         assert "trial" not in sun and sun["use_sun"] is False
         return
     t = sun["trial"]
+    if unscorable:
+        assert sun["use_sun"] is False
+        def refuse(constant):
+            raise AssertionError("metrics.json holds " + constant)
+        with open(tmp_path / "metrics.json") as f:
+            written = json.load(f, parse_constant=refuse)
+        trial_written = written["selection"]["sun"]["trial"]
+        assert trial_written["psnr_without"] is None and trial_written["psnr_with"] is None
+        return
     assert t["iterations"] == 4 and np.isfinite(t["psnr_without"]) and np.isfinite(t["psnr_with"])
     assert sun["use_sun"] == (t["psnr_with"] > t["psnr_without"] + 0.2)
     # The trial's scores come from the validation frame (2); held-out 4 only in the log.

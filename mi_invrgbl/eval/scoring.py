@@ -52,7 +52,7 @@ import numpy as np
 
 from ..errors import UserError
 from ..io.images import read_mask
-from ..scene.frames import Frames, write_json
+from ..scene.frames import Frames, json_safe, write_json
 from ..scene.loading import load_scene
 from ..scene.posing import set_frame
 from . import metrics as M
@@ -74,15 +74,6 @@ TABLE = (("psnr", "PSNR", "%6.2f"), ("ssim", "SSIM", "%6.4f"),
          ("albedo_rmse", "albedo", "%6.4f"), ("roughness_mae", "rough", "%6.4f"),
          ("normal_angle_deg", "normal°", "%7.2f"), ("lidar_albedo_rmse", "L-alb", "%6.4f"),
          ("relight_psnr", "relight", "%7.2f"))
-
-
-def _cap(v):
-    if v is None:
-        return None
-    v = float(v)
-    if math.isnan(v):
-        return None
-    return min(v, PSNR_CAP) if v > 0 and math.isinf(v) else v
 
 
 def image_metrics(render_lin, observed_srgb):
@@ -162,16 +153,8 @@ def format_table(rows, mean) -> str:
 
 
 def json_clean(value):
-    """``value`` with NaN as null, infinite PSNR capped, numpy scalars as Python."""
-    if isinstance(value, dict):
-        return {k: json_clean(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [json_clean(v) for v in value]
-    if isinstance(value, (float, np.floating)):
-        return _cap(value)
-    if isinstance(value, np.integer):
-        return int(value)
-    return value
+    """``value`` with NaN as null, infinite PSNR capped at :data:`PSNR_CAP`."""
+    return json_safe(value, pos_inf=PSNR_CAP)
 
 
 def lookup_baseline(frames, positions, log=print):

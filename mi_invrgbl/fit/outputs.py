@@ -9,17 +9,16 @@ carrying the fitted sensor response and LiDAR model, so that
 
 from __future__ import annotations
 
-import json
 import time
 import os
 
 import numpy as np
 import drjit as dr
-import mitsuba as mi
 
 from ..io.images import write_exr
 from ..physics.gaussian_ply import write_ply
 from ..scene import xml
+from ..scene.frames import json_safe, write_json
 from ..scene.xml import SceneDoc
 from .progress import peak_rss_mb, plot_error_vs_time
 
@@ -133,7 +132,8 @@ def write_outputs(ctx, stage2, interrupted=False):
         "config": ctx.config.to_json(),
         "maps_written": maps,
     }
-    _write_text(os.path.join(fit_dir, "metrics.json"), json.dumps(metrics, indent=1))
+    # A score that could not be computed (NaN) is written as null: strict JSON.
+    write_json(os.path.join(fit_dir, "metrics.json"), json_safe(metrics))
     plot_error_vs_time(rows, os.path.join(fit_dir, "error_vs_time.png"))
     ctx.log("[fit] results in %s: scene.xml, scene_lidar.xml, %s, maps/ (%d frames), metrics.json, "
             "log.csv, error_vs_time.png" % (fit_dir, ", ".join(os.path.basename(p) for p in plys.values()),

@@ -109,6 +109,30 @@ def _non_finite(value, where: str):
     return None
 
 
+def json_safe(value, pos_inf=None):
+    """``value`` made writable by :func:`write_json`: NaN and -inf become
+    null, +inf becomes ``pos_inf`` (default null), numpy scalars and arrays
+    Python numbers and lists. A score that could not be computed (no frames,
+    a diverged fit) is then written as null instead of the non-standard
+    ``NaN`` that other JSON readers refuse."""
+    if isinstance(value, dict):
+        return {k: json_safe(v, pos_inf) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v, pos_inf) for v in value]
+    if isinstance(value, np.ndarray):
+        return json_safe(value.tolist(), pos_inf)
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        v = float(value)
+        if math.isfinite(v):
+            return v
+        return pos_inf if v > 0 else None
+    return value
+
+
 def write_json(path, data, indent=1) -> Path:
     """Write ``data`` as standard JSON to ``path`` atomically (temp file, then
     rename). NaN or infinity anywhere is refused with one error naming the
