@@ -437,3 +437,23 @@ def test_return_samples_follow_the_moving_object(fit_dir):
     obs = np.concatenate(obs)
     assert ret.all() and dist.shape == obs.shape
     np.testing.assert_allclose(dist, obs, atol=1e-3)
+
+
+def test_metrics_json_is_strict_with_non_finite_scores(tmp_path):
+    # A PSNR of identical images (+inf) is written as PSNR_CAP; a score that
+    # could not be computed (NaN, -inf) as null; numpy values as Python ones.
+    # The file must parse without JSON's non-standard NaN/Infinity constants.
+    from mi_invrgbl.eval.scoring import PSNR_CAP, json_clean
+    from mi_invrgbl.scene.frames import json_safe, write_json
+    data = {"psnr": np.float32(np.inf), "rmse": float("nan"), "low": -np.inf,
+            "n": np.int64(3), "ok": np.bool_(True), "per_beam": np.array([0.5, np.nan]),
+            "nested": [{"x": np.float64(1.25)}]}
+    clean = json_clean(data)
+    assert clean == {"psnr": PSNR_CAP, "rmse": None, "low": None, "n": 3, "ok": True,
+                     "per_beam": [0.5, None], "nested": [{"x": 1.25}]}
+    assert json_safe({"psnr": np.inf})["psnr"] is None      # no cap unless asked for
+
+    def refuse(constant):
+        raise AssertionError("non-standard JSON constant " + constant)
+    path = write_json(tmp_path / "metrics.json", clean)
+    assert json.loads(path.read_text(), parse_constant=refuse) == clean
