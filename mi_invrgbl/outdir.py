@@ -64,6 +64,35 @@ FORMAT = "mi-invrgbl-output/1"
 command_line: list[str] = []
 
 
+def atomic_write(path, write) -> Path:
+    """Write one file so that a reader never sees it half written.
+
+    ``write(tmp)`` writes the content to a temporary path beside ``path``
+    (same folder, so the rename cannot cross file systems; same extension, so
+    writers that pick the format from it, Mitsuba's bitmaps and ``np.savez``,
+    write the right one); it is then renamed over ``path``. The folder is
+    created if missing. If ``write`` fails the temporary file is removed and
+    ``path`` keeps its old content. The package's file writers all use it;
+    a whole output folder is, besides, staged and renamed by :func:`prepare`.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".part" + path.suffix)
+    try:
+        write(str(tmp))
+        os.replace(tmp, path)
+    except BaseException:
+        if tmp.exists():
+            tmp.unlink()
+        raise
+    return path
+
+
+def atomic_write_text(path, text: str) -> Path:
+    """:func:`atomic_write` of a text (UTF-8)."""
+    return atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="utf-8"))
+
+
 def _version() -> str:
     try:
         from . import __version__
@@ -118,9 +147,7 @@ def read_marker(folder) -> Marker | None:
 def _write_marker(folder: Path, marker: Marker) -> None:
     marker.version = marker.version or _version()
     marker.written = time.strftime("%Y-%m-%dT%H:%M:%S%z")
-    tmp = folder / (MARKER + ".part")
-    tmp.write_text(marker.to_json())
-    os.replace(tmp, folder / MARKER)
+    atomic_write_text(folder / MARKER, marker.to_json())
 
 
 def _files_under(folder: Path) -> list[str]:
@@ -507,16 +534,12 @@ def write_file(path, data, command: str, inputs=(), recognise=None,
     """Write ``data`` (str or bytes) to ``path`` atomically after :func:`check_file`,
     and list it in its folder's marker."""
     path = check_file(path, command, inputs, recognise, what)
-    tmp = path.with_name(path.name + ".part")
     try:
         if isinstance(data, bytes):
-            tmp.write_bytes(data)
+            atomic_write(path, lambda tmp: Path(tmp).write_bytes(data))
         else:
-            tmp.write_text(data)
-        os.replace(tmp, path)
+            atomic_write_text(path, data)
     except OSError as exc:
-        if tmp.exists():
-            tmp.unlink()
         raise UserError("%s: cannot write (%s)" % (path, exc.strerror or exc)) from None
     register_file(path)
     return path

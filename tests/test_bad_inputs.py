@@ -857,3 +857,29 @@ def test_two_runs_never_write_one_folder(tmp_path):
     with pytest.raises(outdir.UserError, match="another 'mi-invrgbl fit' \\(process %d\\)"
                        % os.getppid()):
         outdir.prepare(target, "fit")
+
+
+@pytest.mark.parametrize("name", ["metrics.json", "albedo.exr", "latest.npz", "background.ply"])
+def test_atomic_write_keeps_the_old_file_when_writing_fails(name, tmp_path):
+    """Every writer goes through ``outdir.atomic_write``: the temporary file
+    keeps the extension (Mitsuba and ``np.savez`` choose the format by it), a
+    writer that fails halfway leaves the old file and no temporary behind."""
+    path = tmp_path / "sub" / name
+    outdir.atomic_write_text(path, "old")
+    assert path.read_text() == "old"
+    seen = []
+
+    def broken(tmp):
+        seen.append(Path(tmp))
+        Path(tmp).write_text("half")
+        raise OSError(28, "No space left on device")
+
+    with pytest.raises(OSError):
+        outdir.atomic_write(path, broken)
+    assert path.read_text() == "old"
+    assert seen[0].suffix == path.suffix and seen[0].parent == path.parent
+    assert sorted(p.name for p in path.parent.iterdir()) == [name]
+    # np.savez appends ".npz" to a name without it: the temporary must already end so
+    outdir.atomic_write(tmp_path / "x.npz", lambda tmp: np.savez(tmp, a=np.arange(3)))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sub", "x.npz"]
+    assert np.load(tmp_path / "x.npz")["a"].tolist() == [0, 1, 2]

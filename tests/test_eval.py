@@ -10,11 +10,9 @@ metric must come out perfect.
 
 import json
 import math
-import os
 
 import numpy as np
 import pytest
-import drjit as dr
 import mitsuba as mi
 
 from mi_invrgbl.physics.gaussian_ply import GaussianCloud, write_ply

@@ -7,7 +7,6 @@ import json
 
 import numpy as np
 import pytest
-import drjit as dr
 import mitsuba as mi
 
 from mi_invrgbl.fit.response import estimate_response, prior_for

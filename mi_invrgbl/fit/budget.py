@@ -5,7 +5,10 @@ early stopping on the validation frames.
 The budget is split between the stages (:data:`SHARES`; the rest pays for
 loading, tracing, selection and outputs). At each stage's start a few real
 iterations are timed; the stage then gets as many iterations as fit in its
-share. Past :data:`MAX_ITERATIONS` a stage takes bigger batches instead of
+share. Once a tenth of them have run, the stage times itself again
+(:class:`Replan`): steps timed while another job held the cores, or while
+kernels still compiled, would otherwise plan too few iterations and leave
+the share half spent. Past :data:`MAX_ITERATIONS` a stage takes bigger batches instead of
 more steps (less gradient noise per step for the same rays). Stage 1's
 position learning rate decays exponentially to 1 % over its planned
 iterations (as 3D Gaussian Splatting schedules it), so the geometry settles
@@ -19,6 +22,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 #: Fractions of the budget for stage 1 and stage 2. The rest pays for the
 #: fixed costs: on the small test scene on 2 busy cores, loading, tracing the
@@ -37,6 +41,14 @@ EVALUATIONS = 12
 MIN_EVAL_INTERVAL = 10
 PATIENCE = 3
 MIN_GAIN = 0.02    # dB of validation PSNR (or its equivalent in -20 log10 RMSE)
+#: A budgeted stage re-times itself once, after this fraction of its planned
+#: iterations (at least MIN_EVAL_INTERVAL)...
+REPLAN_AT = 0.1
+#: ...and takes more iterations when its plan would end with more than this
+#: fraction of the planned iterations' worth of its share unused...
+REPLAN_SLACK = 0.2
+#: ...but at most this many times the planned iterations.
+REPLAN_MAX = 4.0
 
 
 @dataclass
@@ -110,6 +122,42 @@ def probe_batch_scale(step, set_scale, first, seconds, spi1) -> BatchProbe:
             break
     set_scale(best)
     return BatchProbe(best, spi, it - first, timings)
+
+
+@dataclass
+class Replan:
+    """Re-time a budgeted stage once it has run :data:`REPLAN_AT` of its plan.
+
+    ``__call__(it, total)`` returns the stage's new last iteration: ``total``
+    unchanged until the re-timing, and unchanged after it unless the speed
+    measured over the steps run so far (evaluations included, so it errs on
+    the slow side) leaves more than :data:`REPLAN_SLACK` of the plan unused
+    before ``deadline``. It only adds iterations: a stage slower than planned
+    is stopped by its deadline. The added steps keep the plan's batch, and
+    stage 1's position learning rate stretches its decay to the new end.
+    """
+    first: int                # the iteration the stage's timing counts from
+    deadline: float           # time.perf_counter() at which the stage's share is spent
+    clock: Callable = time.perf_counter
+    t_first: float = None
+    timed: float = None       # seconds per iteration measured at the re-timing
+    done: bool = False
+
+    def __post_init__(self):
+        if self.t_first is None:
+            self.t_first = self.clock()
+
+    def __call__(self, it, total) -> int:
+        ran, planned = it - self.first, total - self.first
+        if self.done or ran < max(MIN_EVAL_INTERVAL, REPLAN_AT * planned):
+            return total
+        self.done = True
+        now = self.clock()
+        self.timed = (now - self.t_first) / ran
+        more = int(max(0.0, self.deadline - now) / self.timed)
+        if it + more > total + REPLAN_SLACK * planned:
+            return int(min(it + more, self.first + REPLAN_MAX * planned))
+        return total
 
 
 def position_lr_factor(it, total):

@@ -14,6 +14,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..errors import UserError
+from ..outdir import atomic_write
 from .init import sh_mask
 from .render import Response
 from .state import FitState
@@ -76,9 +77,7 @@ def save_checkpoint(ctx: FitState, fingerprint: dict, stage, iteration, opt=None
             "log": ctx.speed_log.rows, "config": ctx.config.to_json(),
             "fingerprint": fingerprint, **(extra or {})}
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
-    tmp = path + ".part.npz"
-    np.savez(tmp, **arrays)
-    os.replace(tmp, path)
+    atomic_write(path, lambda tmp: np.savez(tmp, **arrays))
     return path
 
 

@@ -24,7 +24,9 @@ class StageRun:
     ``after_step(it, total)`` is the stage's own between-iterations work (stage 1
     densifies there), or None; ``checkpoint(stage, it)`` writes a checkpoint;
     ``stop(it)`` returns a reason to end the stage early (a budget's
-    deadline or early stopping), or None.
+    deadline or early stopping), or None; ``replan(it, total)`` returns the
+    stage's last iteration, which a budget may raise once it has re-timed
+    the stage (:class:`~mi_invrgbl.fit.budget.Replan`), or is None.
     """
     name: str
     step: Callable
@@ -32,6 +34,7 @@ class StageRun:
     checkpoint: Callable
     after_step: Callable | None = None
     stop: Callable | None = None
+    replan: Callable | None = None
 
 
 def _log_name(term):
@@ -67,8 +70,12 @@ def train(state: FitState, run: StageRun, start, total):
     try:
         if start == 0 and total > 0:
             record(0)
-        for it in range(start + 1, total + 1):
+        while it < total:
+            it += 1
             loss, terms, _ = run.step(it)
+            if run.replan is not None:
+                total = run.replan(it, total)
+                bar.total = max(total, 1)
             if run.after_step is not None:
                 run.after_step(it, total)
             bar.update(it, "loss %.4g" % loss)

@@ -15,6 +15,7 @@ import os
 import numpy as np
 import drjit as dr
 
+from ..outdir import atomic_write_text
 from ..io.images import write_exr
 from ..physics.gaussian_ply import write_ply
 from ..scene import xml
@@ -51,13 +52,6 @@ def fitted_xml(ctx, lidar=False):
             xml.set_child_param(integ, "string", "sun_visibility", "attribute")
     doc.set_integrator(integ)
     return doc.to_string()
-
-
-def _write_text(path, text):
-    tmp = path + ".part"
-    with open(tmp, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
 
 
 def write_maps(ctx, stage2, out_dir):
@@ -98,8 +92,8 @@ def write_outputs(ctx, stage2, interrupted=False):
         path = os.path.join(fit_dir, "%s.ply" % name)
         write_ply(path, ctx.model.cloud(name, stage=stage))
         plys[name] = path
-    _write_text(os.path.join(fit_dir, "scene.xml"), fitted_xml(ctx))
-    _write_text(os.path.join(fit_dir, "scene_lidar.xml"), fitted_xml(ctx, lidar=True))
+    atomic_write_text(os.path.join(fit_dir, "scene.xml"), fitted_xml(ctx))
+    atomic_write_text(os.path.join(fit_dir, "scene_lidar.xml"), fitted_xml(ctx, lidar=True))
     if stage2 is not None and any(f.lidar is not None for f in ctx.train_frames):
         from .response import fit_scene_ray_drop
         ctx.selection["ray_drop"] = fit_scene_ray_drop(

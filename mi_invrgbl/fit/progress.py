@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import csv
-import os
 import resource
 import sys
 import time
+
+from ..outdir import atomic_write
 
 
 def peak_rss_mb() -> float:
@@ -66,14 +67,13 @@ class SpeedErrorLog:
         self.write()
 
     def write(self):
-        tmp = self.path + ".part"
-        os.makedirs(os.path.dirname(os.path.abspath(self.path)), exist_ok=True)
-        with open(tmp, "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=self.FIELDS)
-            w.writeheader()
-            for r in self.rows:
-                w.writerow(r)
-        os.replace(tmp, self.path)
+        def write(tmp):
+            with open(tmp, "w", newline="") as f:
+                w = csv.DictWriter(f, fieldnames=self.FIELDS)
+                w.writeheader()
+                for r in self.rows:
+                    w.writerow(r)
+        atomic_write(self.path, write)
 
 
 def plot_error_vs_time(rows, path, key="heldout_psnr", key2="heldout_intensity_rmse"):

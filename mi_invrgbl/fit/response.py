@@ -53,6 +53,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..outdir import atomic_write
+
 from ..physics.lidar_response import colocated_intensity_np, format_gains  # noqa: F401
 
 #: Returns at more grazing incidence than this are ignored (cos theta).
@@ -560,7 +562,6 @@ def scene_return_samples(scene, integrator, frames, positions, lidar_size=None, 
 def write_return_model(scene_lidar_xml, model) -> None:
     """Set the ``return_weights`` / ``return_bias`` of the ``lidar_return``
     integrator in ``scene_lidar_xml`` (a file this package wrote)."""
-    import os
     import xml.etree.ElementTree as ET
     tree = ET.parse(scene_lidar_xml)
     root = tree.getroot()
@@ -573,9 +574,7 @@ def write_return_model(scene_lidar_xml, model) -> None:
     ET.SubElement(integ, "string", {"name": "return_weights", "value": format_gains(model.weights)})
     ET.SubElement(integ, "string", {"name": "return_bias", "value": format_gains(model.beam_bias)})
     ET.indent(tree, space="  ")
-    tmp = str(scene_lidar_xml) + ".part"
-    tree.write(tmp, encoding="unicode")
-    os.replace(tmp, scene_lidar_xml)
+    atomic_write(scene_lidar_xml, lambda tmp: tree.write(tmp, encoding="unicode"))
 
 
 def fit_scene_ray_drop(scene_xml, scene_lidar_xml, frames=None, log=print) -> dict:

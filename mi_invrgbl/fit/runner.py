@@ -36,7 +36,7 @@ import mitsuba as mi
 
 from ..physics.fields import BY_NAME
 from . import outputs
-from .budget import (TIMED, Budget, EarlyStop, plan_stage, position_lr_factor,
+from .budget import (TIMED, Budget, EarlyStop, Replan, plan_stage, position_lr_factor,
                      probe_batch_scale, time_iterations)
 from .checkpoint import checkpoint_path, fingerprint, load_checkpoint, save_checkpoint
 from .config import FitConfig  # noqa: F401  (the fit's options, imported from here by callers)
@@ -162,6 +162,7 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
             s1.opt.scale_learning_rates(position_lr_factor(it, total),
                                         lambda v: isinstance(v, GaussianVariable) and v.field is position)
         run.after_step = after_step
+        run.replan = replanner(state, plan, start, t + budget.share("stage 1"))
     elif budget is not None:
         # A resumed budgeted fit keeps the batch its plan chose.
         k = int(state.selection.get("budget", {}).get("stage 1", {}).get("batch_scale", 1))
@@ -210,9 +211,29 @@ def fit_materials(state: FitState, stage2, start, checkpoint, budget=None, fresh
         total = plan.iterations
         run.stop = early_stop(state, plan, t + seconds, lambda: validation_score(
             *score_stage2(stage2, state.validation_frames)))
+        run.replan = replanner(state, plan, start, t + seconds)
     if total > start:
         return train(state, run, start, total)
     return max(start, total)
+
+
+def replanner(state: FitState, plan, first, deadline):
+    """The budgeted stage's :class:`~.budget.Replan`, which records a raised
+    plan in the fit's selection (a resumed fit keeps it) and says so."""
+    retime = Replan(first, deadline)
+
+    def replan(it, total):
+        new = retime(it, total)
+        if new != total:
+            record = state.selection["budget"][plan.name]
+            record["replanned"] = {"at": it, "seconds_per_iteration": round(retime.timed, 4),
+                                   "iterations_before": total}
+            record["iterations"] = new
+            state.log("[fit] budget: %s re-timed at iteration %d: %.3f s per step against %.3f s "
+                      "timed at its start; %d iterations instead of %d"
+                      % (plan.name, it, retime.timed, plan.seconds_per_iteration, new, total))
+        return new
+    return replan
 
 
 def planned(state: FitState, stage, iterations):
@@ -302,8 +323,7 @@ def sun_trial(state: FitState, frozen, stage2, lighting: LightingChoice,
     for it in range(1, k + 1):
         stage2.iteration(it)
     without = score_stage2(stage2, frames)[0]
-    kept_values = {name: dict(node.values) for name, node in state.model.nodes.items()}
-    kept = (dict(state.lr_state), state.selection.get("shading_init"), state.sun_visibility_learned)
+    kept = state.stage2_start()
     apply_lighting(state, alternative)
     state.lr_state.clear()
     state.lr_state.update(lr_start)
@@ -316,11 +336,7 @@ def sun_trial(state: FitState, frozen, stage2, lighting: LightingChoice,
         stage2 = with_sun
     else:
         apply_lighting(state, lighting)
-        for name, values in kept_values.items():
-            state.model.nodes[name].values = values
-        state.lr_state.clear()
-        state.lr_state.update(kept[0])
-        state.selection["shading_init"], state.sun_visibility_learned = kept[1], kept[2]
+        state.restore_stage2_start(kept)
     seconds = time.perf_counter() - t
     state.selection["sun"]["trial"] = {"iterations": k, "psnr_without": without, "psnr_with": score,
                                        "scored_on": "validation", "seconds": seconds}

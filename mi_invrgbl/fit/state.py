@@ -32,6 +32,17 @@ class SkyKeys:
 
 
 @dataclass
+class Stage2Start:
+    """What a stage-2 run changes in :class:`FitState` besides the scene's
+    lighting: enough to run a second candidate from the same start and go
+    back to the first (:func:`mi_invrgbl.fit.runner.sun_trial`)."""
+    values: dict              #: node name -> its values (arrays are replaced, never written into)
+    lr_state: dict
+    shading_init: object
+    sun_visibility_learned: bool
+
+
+@dataclass
 class FitState:
     scene_path: str
     config: FitConfig
@@ -90,6 +101,20 @@ class FitState:
     @property
     def fit_dir(self):
         return self.config.output or os.path.join(os.path.dirname(self.scene_path), "fit")
+
+    def stage2_start(self) -> Stage2Start:
+        """The point to come back to with :meth:`restore_stage2_start`."""
+        return Stage2Start({name: dict(node.values) for name, node in self.model.nodes.items()},
+                           dict(self.lr_state), self.selection.get("shading_init"),
+                           self.sun_visibility_learned)
+
+    def restore_stage2_start(self, point: Stage2Start) -> None:
+        for name, values in point.values.items():
+            self.model.nodes[name].values = dict(values)
+        self.lr_state.clear()
+        self.lr_state.update(point.lr_state)
+        self.selection["shading_init"] = point.shading_init
+        self.sun_visibility_learned = point.sun_visibility_learned
 
     @property
     def selection_frames(self) -> list:

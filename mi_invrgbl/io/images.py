@@ -2,17 +2,11 @@
 
 from __future__ import annotations
 
-import os
 
 import numpy as np
 import mitsuba as mi
 
-
-def _atomic(path, write):
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    tmp = path + ".part" + os.path.splitext(path)[1]
-    write(tmp)
-    os.replace(tmp, path)
+from ..outdir import atomic_write
 
 
 def write_exr(path: str, image: np.ndarray, channels: list[str]) -> None:
@@ -23,7 +17,7 @@ def write_exr(path: str, image: np.ndarray, channels: list[str]) -> None:
     if image.shape[2] != len(channels):
         raise ValueError("%s: %d channels but %d names" % (path, image.shape[2], len(channels)))
     bitmap = mi.Bitmap(image, mi.Bitmap.PixelFormat.MultiChannel, list(channels))
-    _atomic(path, lambda p: bitmap.write(p, mi.Bitmap.FileFormat.OpenEXR))
+    atomic_write(path, lambda p: bitmap.write(p, mi.Bitmap.FileFormat.OpenEXR))
 
 
 def read_exr(path: str) -> tuple[np.ndarray, list[str]]:
@@ -42,7 +36,7 @@ def write_png(path: str, linear_rgb: np.ndarray, exposure: float = 1.0) -> None:
     data = np.ascontiguousarray((srgb * 255 + 0.5).astype(np.uint8))
     fmt = mi.Bitmap.PixelFormat.Y if data.ndim == 2 else mi.Bitmap.PixelFormat.RGB
     bitmap = mi.Bitmap(data, fmt)
-    _atomic(path, lambda p: bitmap.write(p, mi.Bitmap.FileFormat.PNG))
+    atomic_write(path, lambda p: bitmap.write(p, mi.Bitmap.FileFormat.PNG))
 
 
 def write_false_colour_png(path: str, values: np.ndarray, mask: np.ndarray | None = None,
@@ -55,7 +49,7 @@ def write_false_colour_png(path: str, values: np.ndarray, mask: np.ndarray | Non
     grey = np.clip(v / max(top, 1e-12), 0, 1) ** (1 / 2.2)
     data = np.ascontiguousarray((grey * 255 + 0.5).astype(np.uint8))
     bitmap = mi.Bitmap(data, mi.Bitmap.PixelFormat.Y)
-    _atomic(path, lambda p: bitmap.write(p, mi.Bitmap.FileFormat.PNG))
+    atomic_write(path, lambda p: bitmap.write(p, mi.Bitmap.FileFormat.PNG))
 
 
 def read_image_uint8(path, size, crop=None, expected=None) -> np.ndarray:

@@ -59,7 +59,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import json
-import os
 from pathlib import Path
 import shutil
 import time
@@ -71,7 +70,7 @@ from .. import outdir
 from ..errors import UserError
 from . import init_gaussians as ig
 from .images import read_image_uint8
-from .objects import ObjectTrack, tracks_to_objects, in_box, box_surface_samples
+from .objects import tracks_to_objects, in_box, box_surface_samples
 
 #: sweeps with fewer points are skipped (with a warning)
 MIN_SCAN_POINTS = 10
@@ -498,7 +497,7 @@ def _accumulate(src, state: ImportState, opts, log):
     bg_pts, bg_int, bg_rng, bg_frame = [], [], [], []
     rimgs, methods, tables, world_points = [], [], [], []
     for i, (pts, inten) in enumerate(state.scans):
-        R, t = poses[i][:3, :3], poses[i][:3, 3]
+        t = poses[i][:3, 3]
         world = ig.transform_points(pts, poses[i])
         world_points.append(np.hstack([world, inten[:, None]]).astype(np.float32))
         if state.lidar_rays is not None:

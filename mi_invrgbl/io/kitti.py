@@ -57,7 +57,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import math
-import os
 from pathlib import Path
 import warnings
 

@@ -23,6 +23,8 @@ from dataclasses import field as dc_field, make_dataclass
 
 import numpy as np
 
+from ..outdir import atomic_write
+
 from .colour import LUMINANCE
 from .fields import BY_NAME, GEOMETRY, MATERIAL
 
@@ -268,8 +270,8 @@ def write_ply(path: str, cloud: GaussianCloud) -> None:
         table[k] = v
     header = "ply\nformat binary_little_endian 1.0\nelement vertex %d\n" % n
     header += "".join("property float %s\n" % k for k, _ in fields) + "end_header\n"
-    tmp = path + ".tmp"
-    with open(tmp, "wb") as f:
-        f.write(header.encode("ascii"))
-        f.write(table.tobytes())
-    os.replace(tmp, path)
+    def write(tmp):
+        with open(tmp, "wb") as f:
+            f.write(header.encode("ascii"))
+            f.write(table.tobytes())
+    atomic_write(path, write)

@@ -61,6 +61,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UserError
+from ..outdir import atomic_write_text
 
 FORMAT = "mi-invrgbl-frames/1"
 #: Mitsuba camera (x left, y up, z forward) from dataset camera (x right, y down, z forward)
@@ -142,11 +143,7 @@ def write_json(path, data, indent=1) -> Path:
     if where is not None:
         raise UserError(f"{path}: refusing to write a non-finite number ({where})")
     text = json.dumps(data, indent=indent, allow_nan=False, default=_json_default)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".part")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-    return path
+    return atomic_write_text(path, text)
 
 
 def _json_default(value):

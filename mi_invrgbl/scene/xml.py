@@ -33,6 +33,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 
 from ..errors import UserError, mitsuba_message
+from ..outdir import atomic_write_text
 
 #: Names of ``<string>`` parameters that hold a file path.
 PATH_PARAMETERS = ("filename", "rays")
@@ -109,18 +110,14 @@ class SceneDoc:
         folder = os.path.dirname(os.path.abspath(path))
         os.makedirs(folder, exist_ok=True)
         text = self.to_string(folder)
-        tmp = path + ".part"
-        with open(tmp, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
+        atomic_write_text(path, text)
         written = [path]
         if original is not None:
             before = original.to_string(folder).splitlines(keepends=True)
             diff = difflib.unified_diff(before, text.splitlines(keepends=True),
                                         fromfile=original.path, tofile=path)
             diff_path = os.path.splitext(path)[0] + ".diff"
-            with open(diff_path, "w") as f:
-                f.writelines(diff)
+            atomic_write_text(diff_path, "".join(diff))
             written.append(diff_path)
         return written
 

@@ -159,8 +159,6 @@ def _ground_truth(root, cfg, lay, cams, egos, car_poses, sun, pattern):
 
 def generate_street(out: str, cfg: "config_mod.StreetConfig", log=print) -> dict:
     """Generate the street into ``out``; returns the time of each step (seconds)."""
-    import mitsuba as mi
-
     cfg.validate()
     out, parent = config_mod.check_output(out)
     steps = Steps(log)

@@ -72,7 +72,6 @@ variant_choice.from_argv()
 
 import argparse
 import json
-import math
 import os
 import shutil
 import statistics

@@ -41,7 +41,6 @@ variant_choice.from_argv()
 
 import argparse
 import math
-import os
 import statistics
 import sys
 import time
@@ -317,7 +316,6 @@ def run_size(n, args, rows):
         first, med, peak, dpeak = res
         rows.append(dict(n=n, task=task, first=first, t=med, rays=n_rays, hits=n_hits,
                          peak=peak, dpeak=dpeak, raw=raw, target=target))
-        r = rows[-1]
         print("#   %-22s %8.3f s (1st %.2f s)  x raw %s" %
               (task, med, first, "%.2f" % (med / raw) if raw else "-"),
               file=sys.stderr, flush=True)
