@@ -153,7 +153,8 @@ class Replan:
             return total
         self.done = True
         now = self.clock()
-        self.timed = (now - self.t_first) / ran
+        # (A clock that did not move, coarse or faked, must not divide by zero.)
+        self.timed = max(now - self.t_first, 1e-9) / ran
         more = int(max(0.0, self.deadline - now) / self.timed)
         if it + more > total + REPLAN_SLACK * planned:
             return int(min(it + more, self.first + REPLAN_MAX * planned))

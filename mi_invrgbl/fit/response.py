@@ -54,7 +54,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..outdir import atomic_write
-
 from ..physics.lidar_response import colocated_intensity_np, format_gains  # noqa: F401
 
 #: Returns at more grazing incidence than this are ignored (cos theta).
