@@ -29,6 +29,9 @@ FLAGS = (
     ("--lidar-columns", "lidar_columns", "LiDAR azimuth columns used per scan", {}),
     ("--batch", "batch_rays", "stage-1 rays per batch (camera and LiDAR each)", {}),
     ("--samples", "samples", "sky samples M per Gaussian while fitting", {}),
+    ("--bounces", "bounces",
+     "diffuse bounces of light between Gaussians in the shading (0: direct sun and sky "
+     "light only, as in the paper)", {}),
     ("--render-samples", "render_samples",
      "sky samples M written into the fitted scene.xml: 'auto' (the smallest of 4/8/16/32 "
      "within 0.1 dB of the best validation PSNR) or a number", {}),
@@ -126,6 +129,8 @@ def config_from_args(args):
                     "batch_rays", "samples"):
             if values[name] < (0 if name.startswith("stage") else 1):
                 raise UserError("%s must be positive" % flag)
+    if not 0 <= values["bounces"] <= 8:
+        raise UserError("--bounces must be in 0..8 (got %r)" % values["bounces"])
     if not values["budget_minutes"] >= 0:
         raise UserError("--budget must be a number of minutes >= 0 (got %r)"
                         % values["budget_minutes"])

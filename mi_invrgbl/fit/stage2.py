@@ -215,10 +215,16 @@ class Stage2:
             nodes = self.frozen.nodes(frame, vals)
             lighting = GaussianLighting(ctx.scene, nodes, ctx.config.samples,
                                         self.frozen.caches[frame.index],
-                                        trace_sun=not self.learn_sun_visibility)
+                                        trace_sun=not self.learn_sun_visibility,
+                                        bounces=ctx.config.bounces)
             table = lighting.table
             D = shading_init.as_rows(lighting.diffuse_sky)
             colour = np.concatenate([model.nodes[n].numpy("colour") for n in names])
+            # Bounce light at the start: stage 1's colours are the radiance
+            # the Gaussians send out, so W c is what they pass on (it does
+            # not scale with the light level chosen below).
+            bounce = (shading_init.as_rows(lighting.pass_on(mi.Color3f(colour.T.astype(np.float32))))
+                      if lighting.bounces > 0 else np.zeros_like(D))
             sun_term = np.zeros_like(D)
             seen = shading_init.seen_weight(
                 table, [(self.frozen.camera[f.index], f.camera.valid())
@@ -266,18 +272,18 @@ class Stage2:
             # which costs PSNR where that sky is not saturated white. So the
             # level is a choice: no raise, the full raise and three steps
             # between (geometric), each scored on the validation frames.
-            k_max = shading_init.light_scale(colour, D + sun_term, seen)
+            k_max = shading_init.light_scale(colour, D + sun_term + bounce, seen)
             sky0, E0 = dr.detach(ctx.params[ctx.sky_key]), E if suns else None
             levels = [1.0] if k_max <= 1.0 else [float(k_max ** q) for q in (0, 0.25, 0.5, 0.75, 1)]
             scores = {}
             for k in levels:
-                self._set_light_level(k, sky0, E0, colour, D, sun_term, names, table, counts)
+                self._set_light_level(k, sky0, E0, colour, D, sun_term, bounce, names, table, counts)
                 if len(levels) > 1:
                     score = self._starting_score()
                     scores[k] = score if np.isfinite(score) else -np.inf
             k = max(levels, key=lambda v: scores.get(v, 0.0))
             if k != levels[-1]:
-                self._set_light_level(k, sky0, E0, colour, D, sun_term, names, table, counts)
+                self._set_light_level(k, sky0, E0, colour, D, sun_term, bounce, names, table, counts)
             if suns:
                 report["sun_irradiance"] = (E0 * k).tolist()
             report["light_scale"] = float(k)
@@ -287,15 +293,15 @@ class Stage2:
         self.build_optimizer()
         return report
 
-    def _set_light_level(self, k, sky0, E0, colour, D, sun_term, names, table, counts):
+    def _set_light_level(self, k, sky0, E0, colour, D, sun_term, bounce, names, table, counts):
         """Sky and sun at ``k`` times their fitted level and the albedo that
-        reproduces the stage-1 colours under them."""
+        reproduces the stage-1 colours under them (plus the ``bounce`` light)."""
         ctx, model = self.ctx, self.ctx.model
         ctx.params[ctx.sky_key] = sky0 * k
         if E0 is not None:
             ctx.params[ctx.sun_key] = mi.Color3f(*[float(x) for x in E0 * k])
         ctx.params.update()
-        albedo = shading_init.albedo_from_shading(colour, D * k, sun_term * k)
+        albedo = shading_init.albedo_from_shading(colour, D * k + bounce, sun_term * k)
         for name, a in zip(names, shading_init.split_by_node(albedo, table, counts)):
             model.nodes[name].values["albedo"] = mi.Float(a.astype(np.float32).ravel())
         self.build_optimizer()
@@ -321,7 +327,8 @@ class Stage2:
         if camera and frame.index in self.frozen.camera and ctx.config.weights.rgb > 0:
             cache = (caches or self.frozen.caches)[frame.index]
             lighting = GaussianLighting(ctx.scene, nodes, samples or ctx.config.samples, cache,
-                                        trace_sun=not self.learn_sun_visibility)
+                                        trace_sun=not self.learn_sun_visibility,
+                                        bounces=ctx.config.bounces)
             out["camera"] = camera_shaded(ctx.camera_integrator, ctx.scene, lighting, nodes,
                                           frame.camera.rays, self.frozen.camera[frame.index])
         if lidar and frame.index in self.frozen.lidar:

@@ -28,6 +28,12 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
        - |int|
        - M, sky directions per Gaussian (cosine-weighted Fibonacci spiral around
          its normal). The paper trains with 16 and renders with 128. (Default: 64)
+     * - bounces
+       - |int|
+       - Diffuse bounces of light between Gaussians: a sky direction another
+         Gaussian blocks brings the light that Gaussian reflects (see
+         :mod:`mi_invrgbl.physics.lighting`). 0: direct sky and sun light
+         only, as in the paper. (Default: 0)
      * - max_hits
        - |int|
        - Most Gaussians blended per camera ray. (Default: 64)
@@ -55,6 +61,7 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
 
         c(w_o) = \sum_{lights} v_l\, f_r(w_l, w_o)\, E_l \cos\theta_l
                + \frac{\pi}{M} \sum_{i=1}^{M} v(w_i)\, f_r(w_i, w_o)\, L_{sky}(w_i)
+               + \rho\, E_{bounce} / \pi
 
     with visibilities ``v`` traced from the Gaussian's centre through the
     other Gaussians and the meshes. Where the paper is loose, this is
@@ -83,6 +90,7 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
     def __init__(self, props):
         super().__init__(props)
         self.samples = int(props.get("samples", 64))
+        self.bounces = int(props.get("bounces", 0))
         self.max_hits = int(props.get("max_hits", 64))
         self.min_transmittance = float(props.get("min_transmittance", 1e-3))
         self.sun_visibility = str(props.get("sun_visibility", "trace"))
@@ -92,6 +100,8 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
             raise ValueError("invrgbl: samples must be >= 1")
         if self.max_hits < 1:
             raise ValueError("invrgbl: max_hits must be >= 1")
+        if not 0 <= self.bounces <= 8:
+            raise ValueError("invrgbl: bounces must be in 0..8 (got %d)" % self.bounces)
         if self.sun_visibility not in ("trace", "attribute"):
             raise ValueError("invrgbl: sun_visibility must be 'trace' or 'attribute'")
         self.cache = LightingCache()
@@ -114,8 +124,8 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
         frame = mi.Frame3f(n)
         wo = frame.to_local(wo_world)
 
-        # Diffuse: albedo * (mean sky radiance + sum of light irradiance cos / pi).
-        irradiance_pi = dr.gather(mi.Color3f, lighting.diffuse_sky, gidx, active)
+        # Diffuse: albedo * (mean sky radiance + bounce + sum of light irradiance cos / pi).
+        irradiance_pi = dr.gather(mi.Color3f, lighting.diffuse, gidx, active)
         specular = mi.Color3f(0.0)
         for d_l, e_l in zip(lighting.light_dir, lighting.light_irr):
             wl = frame.to_local(dr.gather(mi.Vector3f, d_l, gidx, active))
@@ -202,7 +212,8 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
         w, t_after = hitlib.blend_weights(g)
         if nodes:
             lighting = GaussianLighting(scene, nodes, self.samples, self.cache,
-                                        trace_sun=self.sun_visibility == "trace")
+                                        trace_sun=self.sun_visibility == "trace",
+                                        bounces=self.bounces)
             colour, albedo, n, tau, rho_l = self.shade_gaussian_hits(lighting, nodes, rays, hit_list, g)
         else:
             colour, albedo, n, tau, rho_l = mi.Color3f(0), mi.Color3f(0), mi.Vector3f(0), 0.0, 0.0
@@ -236,7 +247,8 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
         return mi.Spectrum(L), valid, aovs, None
 
     def to_string(self):
-        return "InvRGBLIntegrator[samples=%d, max_hits=%d]" % (self.samples, self.max_hits)
+        return "InvRGBLIntegrator[samples=%d, bounces=%d, max_hits=%d]" % (
+            self.samples, self.bounces, self.max_hits)
 
 
 def register():
