@@ -64,21 +64,37 @@ FORMAT = "mi-invrgbl-output/1"
 command_line: list[str] = []
 
 
+def _current_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _current_umask()
+
+
 def atomic_write(path, write) -> Path:
     """Write one file so that a reader never sees it half written.
 
     ``write(tmp)`` writes the content to a temporary path beside ``path``
     (same folder, so the rename cannot cross file systems; same extension, so
     writers that pick the format from it, Mitsuba's bitmaps and ``np.savez``,
-    write the right one); it is then renamed over ``path``. The folder is
+    write the right one); it is then renamed over ``path``. The temporary
+    file is created new (``mkstemp``), so a file of the user's that happens
+    to have a temporary-looking name is never written over. The folder is
     created if missing. If ``write`` fails the temporary file is removed and
     ``path`` keeps its old content. The package's file writers all use it;
     a whole output folder is, besides, staged and renamed by :func:`prepare`.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".part" + path.suffix)
+    fd, name = tempfile.mkstemp(prefix="." + path.name + ".", suffix=".part" + path.suffix,
+                                dir=path.parent)
+    os.close(fd)
+    tmp = Path(name)
     try:
+        # mkstemp makes it private (0600); the result gets the usual mode.
+        os.chmod(tmp, 0o666 & ~_UMASK)
         write(str(tmp))
         os.replace(tmp, path)
     except BaseException:

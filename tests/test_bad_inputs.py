@@ -883,3 +883,12 @@ def test_atomic_write_keeps_the_old_file_when_writing_fails(name, tmp_path):
     outdir.atomic_write(tmp_path / "x.npz", lambda tmp: np.savez(tmp, a=np.arange(3)))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["sub", "x.npz"]
     assert np.load(tmp_path / "x.npz")["a"].tolist() == [0, 1, 2]
+    # A file of the user's with a temporary-looking name is left alone, and
+    # the result gets the usual permissions (not mkstemp's private 0600).
+    mine = tmp_path / "x.npz.part.npz"
+    mine.write_text("user's")
+    outdir.atomic_write_text(tmp_path / "x.npz", "new")
+    assert mine.read_text() == "user's"
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (tmp_path / "x.npz").stat().st_mode & 0o777 == 0o666 & ~umask

@@ -29,11 +29,14 @@ FLAGS = (
     ("--lidar-columns", "lidar_columns", "LiDAR azimuth columns used per scan", {}),
     ("--batch", "batch_rays", "stage-1 rays per batch (camera and LiDAR each)", {}),
     ("--samples", "samples", "sky samples M per Gaussian while fitting", {}),
+    ("--sky-patterns", "sky_patterns",
+     "stage 2 turns the sky directions to one of this many patterns each step, so the albedo "
+     "fits the sky integral, not one set of M directions (1: one fixed set)", {}),
     ("--bounces", "bounces",
      "diffuse bounces of light between Gaussians in the shading (0: direct sun and sky "
      "light only, as in the paper)", {}),
     ("--render-samples", "render_samples",
-     "sky samples M written into the fitted scene.xml: 'auto' (the smallest of 4/8/16/32 "
+     "sky samples M written into the fitted scene.xml: 'auto' (the smallest of 4/8/16/32/64 "
      "within 0.1 dB of the best validation PSNR) or a number", {}),
     ("--weights", "weights",
      "loss weights, e.g. 'rgb2lidar=0,lidar2rgb=0' (paper defaults: lidar=rgb=1, nor=mat=0.1, "
@@ -126,7 +129,7 @@ def config_from_args(args):
         raise UserError("--resume and --overwrite exclude each other")
     for flag, name, _, _ in FLAGS:
         if name in ("stage1_iterations", "stage2_iterations", "fit_width", "lidar_columns",
-                    "batch_rays", "samples"):
+                    "batch_rays", "samples", "sky_patterns"):
             if values[name] < (0 if name.startswith("stage") else 1):
                 raise UserError("%s must be positive" % flag)
     if not 0 <= values["bounces"] <= 8:

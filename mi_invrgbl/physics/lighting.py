@@ -66,14 +66,18 @@ def fibonacci_direction(i, count, rot):
     return mi.Vector3f(r * c, r * s, dr.safe_sqrt(1.0 - u))
 
 
-def _hash_rotation(n):
+def _hash_rotation(n, pattern=0):
     """Deterministic per-element offsets in [0, 1) (a low-discrepancy sequence)."""
-    return hash_rotation_of(dr.arange(mi.UInt32, n))
+    return hash_rotation_of(dr.arange(mi.UInt32, n), pattern)
 
 
-def hash_rotation_of(index):
-    """:func:`_hash_rotation`'s offset of element ``index`` (UInt32)."""
-    x = mi.Float(index) * 0.7548776662466927
+def hash_rotation_of(index, pattern=0):
+    """:func:`_hash_rotation`'s offset of element ``index`` (UInt32).
+
+    ``pattern`` p turns every element's spiral further (the second axis of
+    the R2 sequence): the fit cycles through a few patterns so that the
+    albedo it finds fits the sky integral, not one set of M directions."""
+    x = mi.Float(index) * 0.7548776662466927 + float(pattern) * 0.5698402909980532
     return x - dr.floor(x)
 
 
@@ -233,21 +237,23 @@ def _light_key(scene, lights, trace_sun=True):
 class GaussianLighting:
     """Incident light per Gaussian for one render (see module docstring)."""
 
-    def __init__(self, scene, nodes, samples, cache: LightingCache, trace_sun=True, bounces=0):
+    def __init__(self, scene, nodes, samples, cache: LightingCache, trace_sun=True, bounces=0,
+                 pattern=0):
         self.table = GaussianTable.build(nodes)
         self.samples = int(samples)
         self.bounces = int(bounces)
+        self.pattern = int(pattern)
         self.lights = point_lights(scene)
         if self.table.total == 0:
             return
         with dr.suspend_grad():
             key = (_geometry_key(nodes), _light_key(scene, self.lights, trace_sun), self.samples,
-                   trace_sun, self.bounces > 0)
+                   trace_sun, self.bounces > 0, self.pattern)
         table = self.table.load_geometry()
         M, G = self.samples, self.table.total
         frames = mi.Frame3f(dr.gather(mi.Vector3f, table.normal,
                                       dr.arange(mi.UInt32, G * M) // M))
-        local = fibonacci_hemisphere(M, _hash_rotation(G))
+        local = fibonacci_hemisphere(M, _hash_rotation(G, self.pattern))
         self.sky_dirs = frames.to_world(local)           # (G*M,) differentiable in n
         if cache.key != key:
             with dr.suspend_grad():

@@ -138,7 +138,7 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
         # The sample directions are a fixed spiral in each Gaussian's normal
         # frame (lighting.sky_dirs = frame.to_world(spiral)); recomputing the
         # local direction is exact and saves a differentiable gather per sample.
-        rot = hash_rotation_of(gidx)
+        rot = hash_rotation_of(gidx, lighting.pattern)
         for i in range(M):
             j = gidx * M + i
             wi = fibonacci_direction(mi.Float(i), M, rot)
