@@ -104,7 +104,7 @@ def test_no_sun_leaves_visibility_alone(e):
 
 def test_sun_irradiance_falls_back_to_the_selection_level_when_facings_disagree():
     from mi_invrgbl.physics.colour import LUMINANCE
-    from mi_invrgbl.fit.shading_init import MAX_DISAGREEMENT, reconcile_sun_irradiance
+    from mi_invrgbl.fit.shading_init import MAX_EXCESS, reconcile_sun_irradiance
     level = 2.0
     agree = np.array([2.2, 2.5, 2.6])
     E, source = reconcile_sun_irradiance(agree, level)
@@ -115,7 +115,11 @@ def test_sun_irradiance_falls_back_to_the_selection_level_when_facings_disagree(
     E, source = reconcile_sun_irradiance(collapsed, level)
     assert source.startswith("selection") and np.isclose(E @ LUMINANCE, level)
     assert np.allclose(E / E.sum(), collapsed / collapsed.sum())
-    too_bright = agree * (MAX_DISAGREEMENT + 1)
+    # Brighter than the selection's (biased-low) level: trusted up to MAX_EXCESS.
+    brighter = agree * 4.5
+    E, source = reconcile_sun_irradiance(brighter, level)
+    assert source == "facings" and np.allclose(E, brighter)
+    too_bright = agree * (MAX_EXCESS + 1)
     assert reconcile_sun_irradiance(too_bright, level)[1].startswith("selection")
     E, source = reconcile_sun_irradiance(None, level)
     assert np.allclose(E, level) and source.startswith("selection")
