@@ -40,6 +40,9 @@ def test_every_flag_sets_its_field():
     (["--width", "0"], "--width must be positive"),
     (["--render-samples", "some"], "--render-samples must be 'auto' or a positive number"),
     (["--weights", "nosuch=1"], "--weights"),
+    (["--bounces", "-1"], "--bounces must be in 0..8"),
+    (["--bounces", "9"], "--bounces must be in 0..8"),
+    (["--sky-patterns", "0"], "--sky-patterns must be positive"),
 ])
 def test_bad_values_are_refused(args, message):
     with pytest.raises(UserError, match=message):

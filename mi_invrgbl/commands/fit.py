@@ -36,7 +36,7 @@ FLAGS = (
      "diffuse bounces of light between Gaussians in the shading (0: direct sun and sky "
      "light only, as in the paper)", {}),
     ("--render-samples", "render_samples",
-     "sky samples M written into the fitted scene.xml: 'auto' (the smallest of 4/8/16/32/64 "
+     "sky samples M written into the fitted scene.xml: 'auto' (the smallest of 4/8/16/32 "
      "within 0.1 dB of the best validation PSNR) or a number", {}),
     ("--weights", "weights",
      "loss weights, e.g. 'rgb2lidar=0,lidar2rgb=0' (paper defaults: lidar=rgb=1, nor=mat=0.1, "

@@ -225,7 +225,7 @@ def choose_lidar_lobe(ctx: FitState, stage2, frozen) -> LobeChoice:
     return LobeChoice(result)
 
 
-def choose_render_samples(ctx: FitState, stage2, frozen, candidates=(4, 8, 16, 32, 64),
+def choose_render_samples(ctx: FitState, stage2, frozen, candidates=(4, 8, 16, 32),
                           deadline=None) -> dict:
     """Sky samples M for rendering the fitted scene: the smallest whose
     validation PSNR is within 0.1 dB of the best. Each is scored on up to

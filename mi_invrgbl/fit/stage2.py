@@ -323,6 +323,27 @@ class Stage2:
         psnr, _ = score_stage2(self, frames)
         return psnr
 
+    def trace_patterns(self):
+        """Fill the lighting cache of every sky pattern (one per distinct
+        cache: once for a static scene, per frame with per-frame visibility)."""
+        ctx = self.ctx
+        if ctx.config.weights.rgb <= 0:
+            return
+        vals = self.values()
+        seen = set()
+        with dr.suspend_grad():
+            for frame in ctx.train_frames:
+                if frame.index not in self.frozen.camera or id(self.frozen.caches[frame.index]) in seen:
+                    continue
+                seen.add(id(self.frozen.caches[frame.index]))
+                nodes = self.frozen.nodes(frame, vals)
+                for p in range(max(1, ctx.config.sky_patterns)):
+                    lighting = GaussianLighting(ctx.scene, nodes, ctx.config.samples,
+                                                self.frozen.cache(frame, p),
+                                                trace_sun=not self.learn_sun_visibility,
+                                                bounces=ctx.config.bounces, pattern=p)
+                    dr.eval(lighting.diffuse)
+
     # ---------------------------------------------------------- render
     def render_frame(self, frame, vals, camera=True, lidar=True, samples=None, caches=None,
                      pattern=0):
