@@ -77,7 +77,11 @@ def hash_rotation_of(index, pattern=0):
     ``pattern`` p turns every element's spiral further (the second axis of
     the R2 sequence): the fit cycles through a few patterns so that the
     albedo it finds fits the sky integral, not one set of M directions."""
-    x = mi.Float(index) * 0.7548776662466927 + float(pattern) * 0.5698402909980532
+    turn = float(pattern) * 0.5698402909980532
+    # Opaque: the turn is data, not a constant traced into the kernel, so
+    # every pattern runs the same compiled kernels (a literal made each of
+    # the fit's patterns compile its own, seconds each on the LLVM backend).
+    x = mi.Float(index) * 0.7548776662466927 + dr.opaque(mi.Float, turn - math.floor(turn))
     return x - dr.floor(x)
 
 
