@@ -336,7 +336,8 @@ def main(argv=None):
                     help="keep fits that already have an eval (re-print and re-plot)")
     ap.add_argument("--merge", nargs="+", default=[], metavar="JSON",
                     help="also tabulate and plot the rows of earlier runs' convergence.json "
-                         "(PATH or PATH:VARIANT, e.g. a GPU machine's); with no budgets "
+                         "(PATH, e.g. a GPU machine's, or PATH:TAG: TAG names rows without a "
+                         "variant and prefixes the others, e.g. 'previous'); with no budgets "
                          "given, run no fit")
     args = ap.parse_args(argv)
     merged = []
@@ -348,7 +349,10 @@ def main(argv=None):
         except (OSError, ValueError, TypeError) as e:
             raise SystemExit(f"{path}: not a convergence.json ({e})")
         for r in rows_in:
-            r.variant = r.variant or variant
+            # A tag names rows without a variant, and prefixes those with one
+            # (e.g. "previous" for an earlier release's rows beside this one's).
+            r.variant = ("%s-%s" % (variant, r.variant) if variant and r.variant
+                         else r.variant or variant)
         merged += rows_in
     if merged and not (args.budgets_opt or args.budgets):
         work = Path(args.work).absolute()
