@@ -140,3 +140,14 @@ def test_bounce_gradient_matches_finite_differences():
 def test_bounces_out_of_range_are_refused(bounces):
     with pytest.raises(Exception, match="bounces"):
         mi.load_dict({"type": "invrgbl", "bounces": bounces})
+
+
+def test_nothing_to_bounce_off_renders_as_direct_light():
+    """A single Gaussian: its sky rays meet nothing, the bounce matrix is
+    empty, and the image equals the direct-light one."""
+    from test_invrgbl import single_gaussian
+    imgs = [render({"type": "scene", "integrator": {"type": "invrgbl", "samples": 16, "bounces": b},
+                    "blob": single_gaussian([0, 0, 0], [0.5, 0.5, 0.05]), "sky": sky(sun_direction=SUN),
+                    "sensor": camera([0, -2, 2], [0, 0, 0], size=16)}, 2) for b in (0, 1)]
+    assert imgs[0][..., ALPHA].max() > 0.5
+    assert np.allclose(imgs[0], imgs[1], rtol=1e-6, atol=1e-7)

@@ -382,8 +382,9 @@ def test_zero_opacity_gaussians_render_the_background():
     assert np.all(img[..., ALPHA] == 0)
 
 
+@pytest.mark.parametrize("bounces", [0, 1])
 @pytest.mark.parametrize("case", ["zero_size", "huge", "tau_zero", "tau_one", "grazing"])
-def test_degenerate_inputs_give_finite_output(case):
+def test_degenerate_inputs_give_finite_output(case, bounces):
     scale, tau = 0.1, 0.4
     origin, target = [0, -3, 3], [0, 0, 0]
     if case == "zero_size":
@@ -399,8 +400,8 @@ def test_degenerate_inputs_give_finite_output(case):
     g, c = layer(extent=1.0, roughness=tau)
     n = c.shape[0]
     g["scales"] = mi.TensorXf(np.tile([[scale, scale, scale * 1e-2]], (n, 1)).astype(np.float32))
-    img, _ = render({"integrator": {"type": "invrgbl", "samples": 8}, "ground": g, "sky": sky(),
-                     "blob": single_gaussian([0, 0, 0.5], [0.2, 0.2, 0.2]),
+    img, _ = render({"integrator": {"type": "invrgbl", "samples": 8, "bounces": bounces},
+                     "ground": g, "sky": sky(), "blob": single_gaussian([0, 0, 0.5], [0.2, 0.2, 0.2]),
                      "sensor": camera(origin, target, size=16)}, spp=2)
     assert np.all(np.isfinite(img))
     assert np.all(img[..., RGB] >= 0)

@@ -132,8 +132,9 @@ def config_from_args(args):
                     "batch_rays", "samples", "sky_patterns"):
             if values[name] < (0 if name.startswith("stage") else 1):
                 raise UserError("%s must be positive" % flag)
-    if not 0 <= values["bounces"] <= 8:
-        raise UserError("--bounces must be in 0..8 (got %r)" % values["bounces"])
+    from ..physics.lighting import MAX_BOUNCES
+    if not 0 <= values["bounces"] <= MAX_BOUNCES:
+        raise UserError("--bounces must be in 0..%d (got %r)" % (MAX_BOUNCES, values["bounces"]))
     if not values["budget_minutes"] >= 0:
         raise UserError("--budget must be a number of minutes >= 0 (got %r)"
                         % values["budget_minutes"])

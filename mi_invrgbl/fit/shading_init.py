@@ -100,8 +100,8 @@ MAX_DISAGREEMENT = 4.0
 #: is a regression slope on traced shadows, and every shadow the stage-1
 #: geometry casts wrongly pulls it towards 0 (errors in the regressor): on
 #: the street (true sun 3.9 in luminance) the selection's level was
-#: 0.39-0.72 where the facings gave 1.8-3.3, and fits started from the
-#: facings relit 1.0 dB better (21.13 against 20.04-20.13 dB).
+#: 0.39-0.72 where the facings gave 1.8-3.3; with the same options a fit
+#: started from the facings relit 0.5 dB better (20.63 against 20.13 dB).
 MAX_EXCESS = 10.0
 
 

@@ -222,10 +222,7 @@ class Stage2:
                 sun_dir = np.array(d, np.float64).T
             vals = self.values()
             nodes = self.frozen.nodes(frame, vals)
-            lighting = GaussianLighting(ctx.scene, nodes, ctx.config.samples,
-                                        self.frozen.caches[frame.index],
-                                        trace_sun=not self.learn_sun_visibility,
-                                        bounces=ctx.config.bounces)
+            lighting = self.lighting(nodes, self.frozen.caches[frame.index])
             table = lighting.table
             D = shading_init.as_rows(lighting.diffuse_sky)
             colour = np.concatenate([model.nodes[n].numpy("colour") for n in names])
@@ -323,6 +320,14 @@ class Stage2:
         psnr, _ = score_stage2(self, frames)
         return psnr
 
+    def lighting(self, nodes, cache, samples=None, pattern=0):
+        """The Gaussians' incident light as the fit shades them (its M,
+        bounces and sun visibility), from ``cache``."""
+        cfg = self.ctx.config
+        return GaussianLighting(self.ctx.scene, nodes, samples or cfg.samples, cache,
+                                trace_sun=not self.learn_sun_visibility, bounces=cfg.bounces,
+                                pattern=pattern)
+
     def trace_patterns(self):
         """Fill the lighting cache of every sky pattern (one per distinct
         cache: once for a static scene, per frame with per-frame visibility)."""
@@ -338,11 +343,7 @@ class Stage2:
                 seen.add(id(self.frozen.caches[frame.index]))
                 nodes = self.frozen.nodes(frame, vals)
                 for p in range(max(1, ctx.config.sky_patterns)):
-                    lighting = GaussianLighting(ctx.scene, nodes, ctx.config.samples,
-                                                self.frozen.cache(frame, p),
-                                                trace_sun=not self.learn_sun_visibility,
-                                                bounces=ctx.config.bounces, pattern=p)
-                    dr.eval(lighting.diffuse)
+                    dr.eval(self.lighting(nodes, self.frozen.cache(frame, p), pattern=p).diffuse)
 
     # ---------------------------------------------------------- render
     def render_frame(self, frame, vals, camera=True, lidar=True, samples=None, caches=None,
@@ -360,9 +361,7 @@ class Stage2:
         out = {}
         if camera and frame.index in self.frozen.camera and ctx.config.weights.rgb > 0:
             cache = caches[frame.index] if caches else self.frozen.cache(frame, pattern)
-            lighting = GaussianLighting(ctx.scene, nodes, samples or ctx.config.samples, cache,
-                                        trace_sun=not self.learn_sun_visibility,
-                                        bounces=ctx.config.bounces, pattern=pattern)
+            lighting = self.lighting(nodes, cache, samples, pattern)
             out["camera"] = camera_shaded(ctx.camera_integrator, ctx.scene, lighting, nodes,
                                           frame.camera.rays, self.frozen.camera[frame.index])
         if lidar and frame.index in self.frozen.lidar:

@@ -40,6 +40,8 @@ from . import hits as hitlib
 GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 #: Gaussians traversed by a visibility (shadow) ray before giving up.
 SHADOW_MAX_HITS = 16
+#: Most diffuse bounces an integrator or a fit may ask for.
+MAX_BOUNCES = 8
 #: Shadow-ray hits blended with less weight pass on no bounce light (the
 #: sparse bounce matrix stays small; they carry < 0.1 % of a ray's light).
 BOUNCE_MIN_WEIGHT = 1e-3
@@ -304,10 +306,13 @@ class GaussianLighting:
                                               table.prims, mi.Bool(True))
             self.light_dir.append(d)
             self.light_irr.append(irr * vis)
-        # E / pi of the diffuse term: sky + bounce (the lights' cos term
-        # depends on the shading frame and is added per hit).
+        # E / pi of the diffuse term per Gaussian (its normal is the shading
+        # normal of every hit on it): sky, lights, and the bounce.
+        self.direct = mi.Color3f(self.diffuse_sky)
+        for d_l, e_l in zip(self.light_dir, self.light_irr):
+            self.direct += e_l * dr.maximum(dr.dot(table.normal, d_l), 0.0) * dr.inv_pi
         self.indirect = self.bounce_light(nodes) if self.bounces > 0 else dr.zeros(mi.Color3f, G)
-        self.diffuse = self.diffuse_sky + self.indirect
+        self.diffuse = self.direct + self.indirect
 
     def bounce_light(self, nodes):
         """E / pi that reaches each Gaussian after 1..``bounces`` diffuse bounces."""
@@ -316,13 +321,10 @@ class GaussianLighting:
             return dr.zeros(mi.Color3f, G)
         albedo = mi.Color3f(hitlib.gather_attribute(nodes, "albedo", table.ids, table.prims,
                                                     mi.Bool(True)))
-        direct = mi.Color3f(self.diffuse_sky)
-        for d_l, e_l in zip(self.light_dir, self.light_irr):
-            direct += e_l * dr.maximum(dr.dot(table.normal, d_l), 0.0) * dr.inv_pi
         indirect = dr.zeros(mi.Color3f, G)
         for _ in range(self.bounces):
             # Radiance leaving each Gaussian (Lambertian), passed along W.
-            indirect = self.pass_on(albedo * (direct + indirect))
+            indirect = self.pass_on(albedo * (self.direct + indirect))
         return indirect
 
     def pass_on(self, leaving):

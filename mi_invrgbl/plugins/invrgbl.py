@@ -6,8 +6,8 @@ import drjit as dr
 import mitsuba as mi
 
 from ..physics import brdf, hits as hitlib
-from ..physics.lighting import (GaussianLighting, LightingCache, fibonacci_direction,
-                       hash_rotation_of, transmittance)
+from ..physics.lighting import (MAX_BOUNCES, GaussianLighting, LightingCache,
+                                fibonacci_direction, hash_rotation_of, transmittance)
 
 _variant = mi.variant()
 
@@ -100,8 +100,8 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
             raise ValueError("invrgbl: samples must be >= 1")
         if self.max_hits < 1:
             raise ValueError("invrgbl: max_hits must be >= 1")
-        if not 0 <= self.bounces <= 8:
-            raise ValueError("invrgbl: bounces must be in 0..8 (got %d)" % self.bounces)
+        if not 0 <= self.bounces <= MAX_BOUNCES:
+            raise ValueError("invrgbl: bounces must be in 0..%d (got %d)" % (MAX_BOUNCES, self.bounces))
         if self.sun_visibility not in ("trace", "attribute"):
             raise ValueError("invrgbl: sun_visibility must be 'trace' or 'attribute'")
         self.cache = LightingCache()
@@ -124,14 +124,13 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
         frame = mi.Frame3f(n)
         wo = frame.to_local(wo_world)
 
-        # Diffuse: albedo * (mean sky radiance + bounce + sum of light irradiance cos / pi).
+        # Diffuse: albedo * E / pi (sky, lights and bounce; per Gaussian).
         irradiance_pi = dr.gather(mi.Color3f, lighting.diffuse, gidx, active)
         specular = mi.Color3f(0.0)
         for d_l, e_l in zip(lighting.light_dir, lighting.light_irr):
             wl = frame.to_local(dr.gather(mi.Vector3f, d_l, gidx, active))
             e = dr.gather(mi.Color3f, e_l, gidx, active)
             cos_l = dr.maximum(mi.Frame3f.cos_theta(wl), 0.0)
-            irradiance_pi += e * cos_l * dr.inv_pi
             specular += e * cos_l * brdf.specular(wl, wo, tau, self.f0)
         # Specular sky: pi/M sum_i f_s(w_i, w_o) v_i L(w_i) over the Gaussian's samples.
         M = lighting.samples
