@@ -313,3 +313,35 @@ def test_slic_nan_tiny_and_loss():
     # numpy labels with -1 (invalid) work directly
     assert L.superpixel_variance(flat, labels, n)[0] == \
         pytest.approx(L.superpixel_variance(flat, labels_to_drjit(labels), n)[0])
+
+
+# ------------------------------------------------------------ normal anchor
+def np_anchor(n, n0):
+    n, n0 = np.asarray(n, np.float64).reshape(-1, 3), np.asarray(n0, np.float64).reshape(-1, 3)
+    return float(np.mean(1.0 - np.sum(n * n0, 1) / np.linalg.norm(n, axis=1)))
+
+
+def test_normal_anchor_closed_form_and_gradient():
+    n0 = RNG.normal(size=(6, 3))
+    n0 /= np.linalg.norm(n0, axis=1, keepdims=True)
+    n = n0 * RNG.uniform(0.5, 2.0, (6, 1)) + 0.3 * RNG.normal(size=(6, 3))
+    # unchanged directions (any length) cost nothing; a quarter turn costs 1, a half turn 2
+    assert L.normal_anchor(mi.Float(2.0 * n0.ravel()), mi.Float(n0.ravel()))[0] == pytest.approx(0.0, abs=1e-6)
+    assert L.normal_anchor(mi.Float([0, 1, 0, 0, 0, -3]), mi.Float([1, 0, 0, 0, 0, 1]))[0] == pytest.approx(1.5)
+    x = mi.Float(n.ravel())
+    dr.enable_grad(x)
+    val = L.normal_anchor(x, mi.Float(n0.ravel()))
+    dr.backward(val)
+    assert val[0] == pytest.approx(np_anchor(n, n0), rel=1e-5)
+    fd = fd_grad(lambda v: np_anchor(v, n0), n.ravel())
+    assert np.allclose(np.array(dr.grad(x)), fd, rtol=1e-3, atol=1e-5)
+
+
+def test_normal_anchor_edge_cases():
+    # zero-length normals stay finite; mismatched sizes are refused; no Gaussians cost nothing
+    v = L.normal_anchor(mi.Float([0, 0, 0]), mi.Float([0, 0, 1]))
+    assert np.isfinite(v[0])
+    with pytest.raises(ValueError):
+        L.normal_anchor(mi.Float([0, 0, 1, 0, 0, 1]), mi.Float([0, 0, 1]))
+    assert L.normal_anchor(mi.Float([]), mi.Float([]))[0] == 0
+    assert L.LossWeights().anchor >= 0 and L.LossWeights.parse("normal_anchor=0.3").anchor == 0.3

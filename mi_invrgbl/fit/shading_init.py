@@ -5,8 +5,9 @@ it as albedo times shading; the Lambertian part of ``invrgbl``'s shading is
 
     c = a (D + E v cos / pi)
 
-with ``D`` the Gaussian's sky term (mean of sky radiance times traced sky
-visibility over its samples), ``v`` its sun visibility, ``cos`` the sun's
+with ``D`` the Gaussian's ambient term (mean of sky radiance times traced sky
+visibility over its samples, plus, with bounces, the light its neighbours
+pass on), ``v`` its sun visibility, ``cos`` the sun's
 incidence and ``E`` the sun's irradiance.
 
 With free per-Gaussian albedo every ``E`` fits the images equally well, so
@@ -34,6 +35,10 @@ import numpy as np
 from ..physics.colour import LUMINANCE
 from .selection import surface_patches
 
+#: Most rounds of visibility correction and re-estimation at stage 2's start,
+#: and the relative change of the sun's irradiance (luminance) that ends them.
+MAX_ROUNDS = 6
+SETTLED = 0.01
 #: Visibility thresholds of the sunlit and shadowed groups compared.
 LIT, SHADOW = 0.7, 0.3
 #: Least Gaussians per group for a facing to count.
@@ -159,6 +164,32 @@ def visibility_from_lidar_albedo(colour, sky_term, sun_irradiance, visibility, c
     out[change] = np.clip(implied[change], 0.0, 1.0)
     n = max(seen.sum(), 1)
     return out, float(lower.sum() / n), float(raise_.sum() / n)
+
+
+def settle_sun_and_visibility(colour, ambient, sun_irradiance, source, traced, cos, normals,
+                              seen, lidar_albedo, selection_level):
+    """Alternate :func:`visibility_from_lidar_albedo` (correcting the
+    ``traced`` visibility under the current irradiance) and
+    :func:`estimate_sun_irradiance` (from the corrected groups, reconciled
+    with ``selection_level``) until the irradiance changes by less than
+    :data:`SETTLED` (a fixed point within 3-4 rounds on the street), at most
+    :data:`MAX_ROUNDS` times.
+
+    ``ambient``: each Gaussian's light without the sun, sky plus bounce.
+    Returns ``(E, visibility, source, share lowered, share raised)``.
+    """
+    E, vis, lowered, raised = np.asarray(sun_irradiance, np.float64), traced, 0.0, 0.0
+    for _ in range(MAX_ROUNDS):
+        vis, lowered, raised = visibility_from_lidar_albedo(colour, ambient, E, traced, cos, seen,
+                                                            lidar_albedo)
+        estimate, _ = estimate_sun_irradiance(colour, ambient, vis, cos, normals, seen, lidar_albedo)
+        if estimate is None:
+            break
+        before = float(E @ LUMINANCE)
+        E, source = reconcile_sun_irradiance(estimate, selection_level)
+        if abs(float(E @ LUMINANCE) - before) <= SETTLED * max(before, 1e-6):
+            break
+    return E, vis, source, lowered, raised
 
 
 #: Quantile of the seen Gaussians' required albedo (largest channel) that

@@ -1,0 +1,111 @@
+"""Where a fitted street's albedo and normal error come from (synthetic street).
+
+    python tests/bench/albedo_breakdown.py FIT_DIR [FIT_DIR ...] [--frames held-out]
+
+Each fitted scene is rendered through the evaluation's own pipeline on the
+held-out frames (``mi-invrgbl eval``'s selection, its alpha mask and its
+alignment with the ground truth). The albedo is scaled per channel by one
+least-squares factor over all scored pixels pooled (``eval`` fits one per
+frame), then the error is split by the ground truth's mesh: each material's
+share of pixels, its true and fitted (scaled) mean albedo, its RMSE, its share
+of the squared error, the median normal error, and the true sun visibility
+there. A row whose fitted albedo is far darker than the truth while the truth
+says the material is in shadow is shading the fit credits to the wrong light;
+a constant albedo (every pixel at the true mean) is printed for scale.
+"""
+
+import sys as _sys, pathlib as _pathlib
+_sys.path.insert(0, str(_pathlib.Path(__file__).resolve().parents[1]))
+import variant_choice  # noqa: E402  (--variant NAME, default $MI_INVRGBL_VARIANT or llvm_ad_rgb)
+variant_choice.from_argv()
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import mitsuba as mi  # noqa: E402,F401
+
+import mi_invrgbl  # noqa: E402,F401
+from mi_invrgbl.eval.ground_truth import ALPHA_MIN, gt_alignment, source_number  # noqa: E402
+from mi_invrgbl.eval.inputs import read_map, resolve_inputs, select_frames  # noqa: E402
+from mi_invrgbl.eval.rendering import integrator_like, render_camera  # noqa: E402
+from mi_invrgbl.scene.frames import Frames  # noqa: E402
+from mi_invrgbl.scene.loading import load_scene  # noqa: E402
+from mi_invrgbl.scene.posing import set_frame  # noqa: E402
+
+#: Materials below this share of the scored pixels are pooled into "other".
+MIN_SHARE = 0.01
+
+
+def first_channel(x):
+    return x[..., 0] if x is not None and x.ndim == 3 else x
+
+
+def collect(fit, frames_spec):
+    """Per scored pixel: fitted albedo, true albedo, mesh id, normal error, true sun visibility."""
+    scene_xml, _ = resolve_inputs(fit)
+    frames = Frames.load(scene_xml)
+    if frames.ground_truth is None or not Path(frames.ground_truth).is_dir():
+        raise SystemExit("%s: no ground truth next to the frames (a make-scene street import)" % fit)
+    gt = Path(frames.ground_truth)
+    positions = select_frames(frames, frames_spec)
+    scene = load_scene(str(scene_xml))
+    integ = integrator_like(scene, None)
+    R = gt_alignment(frames, positions, gt)
+    cols = {k: [] for k in ("fit", "true", "mesh", "angle", "sun")}
+    for k in positions:
+        sensor, _ = set_frame(scene, frames, k)
+        cam = render_camera(scene, sensor, 0, integ)
+        base = str(gt / "maps" / ("%06d_" % source_number(frames[k])))
+        mesh = first_channel(read_map(base + "mesh_id.exr"))
+        alpha = cam["alpha"]
+        m = (mesh >= 0) & (alpha > ALPHA_MIN)
+        normal = cam["normal"][m]
+        normal = normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+        true_n = read_map(base + "normal.exr")[m] @ R.T
+        sun = read_map(base + "sun_visibility.exr")
+        cols["fit"].append(cam["albedo"][m] / alpha[m][:, None])
+        cols["true"].append(read_map(base + "albedo.exr")[m])
+        cols["mesh"].append(mesh[m].astype(int))
+        cols["angle"].append(np.degrees(np.arccos(np.clip(np.sum(normal * true_n, 1), -1, 1))))
+        cols["sun"].append(first_channel(sun)[m] if sun is not None else np.full(m.sum(), np.nan))
+    names = {d["mesh_id"]: d["name"] for d in json.loads((gt / "materials.json").read_text())["meshes"]}
+    return {k: np.concatenate(v) for k, v in cols.items()}, names
+
+
+def report(fit, data, names):
+    p, t = data["fit"], data["true"]
+    scale = np.sum(p * t, 0) / np.maximum(np.sum(p * p, 0), 1e-12)
+    ps = p * scale
+    err2 = np.sum((ps - t) ** 2, 1)
+    const = np.sqrt(np.mean((t - t.mean(0)) ** 2))
+    print("\n%s: %d pixels, pooled albedo RMSE %.4f (a constant albedo: %.4f), median normal "
+          "error %.1f deg, scale %s" % (fit, len(p), np.sqrt(err2.mean() / 3), const,
+                                        np.median(data["angle"]), np.round(scale, 3)))
+    print("| material | pixels | true albedo | fitted (scaled) | RMSE | error share | normal [deg] | true sun vis |")
+    print("|---|---|---|---|---|---|---|---|")
+    label = np.array([names.get(int(i), str(i)) for i in data["mesh"]])
+    kinds = sorted(set(label), key=lambda n: -np.sum(err2[label == n]))
+    small = [n for n in kinds if np.mean(label == n) < MIN_SHARE]
+    for name in [n for n in kinds if n not in small] + (["other"] if small else []):
+        sel = np.isin(label, small) if name == "other" else label == name
+        fmt = lambda v: " ".join("%.2f" % x for x in v)  # noqa: E731
+        print("| %s | %.3f | %s | %s | %.3f | %.3f | %.1f | %.2f |"
+              % (name, sel.mean(), fmt(t[sel].mean(0)), fmt(ps[sel].mean(0)),
+                 np.sqrt(err2[sel].mean() / 3), err2[sel].sum() / err2.sum(),
+                 np.median(data["angle"][sel]), np.nanmean(data["sun"][sel])))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("fits", nargs="+", help="fitted scene folders (fit/)")
+    ap.add_argument("--frames", default="held-out", help="frame selection as in eval (default held-out)")
+    args = ap.parse_args()
+    for fit in args.fits:
+        data, names = collect(fit, args.frames)
+        report(fit, data, names)
+
+
+if __name__ == "__main__":
+    main()
