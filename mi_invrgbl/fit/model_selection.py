@@ -213,7 +213,7 @@ def choose_lidar_lobe(ctx: FitState, stage2, frozen) -> LobeChoice:
     lam = Stage2(ctx, frozen, model_kind="lambertian")
     lam.build_optimizer(only=lambda v: isinstance(v, ResponseVariable) or (
         isinstance(v, GaussianVariable) and v.field.name == "lidar_albedo"))
-    w = LossWeights.parse("rgb=0,nor=0,mat=0,rgb2lidar=0,lidar2rgb=0", cfg.weights)
+    w = LossWeights.parse("rgb=0,nor=0,mat=0,rgb2lidar=0,lidar2rgb=0,anchor=0", cfg.weights)
     for it in range(cfg.lobe_iterations):
         lam.iteration(it, weights=w)
     _, rmse_lam = score_stage2(lam, frames)

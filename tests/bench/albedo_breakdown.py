@@ -8,8 +8,8 @@ alignment with the ground truth). The albedo is scaled per channel by one
 least-squares factor over all scored pixels pooled (``eval`` fits one per
 frame), then the error is split by the ground truth's mesh: each material's
 share of pixels, its true and fitted (scaled) mean albedo, its RMSE, its share
-of the squared error, the median normal error, and the true sun visibility
-there. A row whose fitted albedo is far darker than the truth while the truth
+of the squared error, its median normal error and share of the summed normal
+error, and the true sun visibility there. A row whose fitted albedo is far darker than the truth while the truth
 says the material is in shadow is shading the fit credits to the wrong light;
 a constant albedo (every pixel at the true mean) is printed for scale.
 """
@@ -80,21 +80,25 @@ def report(fit, data, names):
     ps = p * scale
     err2 = np.sum((ps - t) ** 2, 1)
     const = np.sqrt(np.mean((t - t.mean(0)) ** 2))
-    print("\n%s: %d pixels, pooled albedo RMSE %.4f (a constant albedo: %.4f), median normal "
-          "error %.1f deg, scale %s" % (fit, len(p), np.sqrt(err2.mean() / 3), const,
-                                        np.median(data["angle"]), np.round(scale, 3)))
-    print("| material | pixels | true albedo | fitted (scaled) | RMSE | error share | normal [deg] | true sun vis |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("\n%s: %d pixels, pooled albedo RMSE %.4f (a constant albedo: %.4f), normal error "
+          "mean %.1f, median %.1f deg, scale %s" % (fit, len(p), np.sqrt(err2.mean() / 3), const,
+                                                    np.mean(data["angle"]), np.median(data["angle"]),
+                                                    np.round(scale, 3)))
+    angle = data["angle"]
+    print("| material | pixels | true albedo | fitted (scaled) | RMSE | error share | normal [deg] "
+          "| normal share | true sun vis |")
+    print("|---|---|---|---|---|---|---|---|---|")
     label = np.array([names.get(int(i), str(i)) for i in data["mesh"]])
     kinds = sorted(set(label), key=lambda n: -np.sum(err2[label == n]))
     small = [n for n in kinds if np.mean(label == n) < MIN_SHARE]
     for name in [n for n in kinds if n not in small] + (["other"] if small else []):
         sel = np.isin(label, small) if name == "other" else label == name
         fmt = lambda v: " ".join("%.2f" % x for x in v)  # noqa: E731
-        print("| %s | %.3f | %s | %s | %.3f | %.3f | %.1f | %.2f |"
+        print("| %s | %.3f | %s | %s | %.3f | %.3f | %.1f | %.3f | %.2f |"
               % (name, sel.mean(), fmt(t[sel].mean(0)), fmt(ps[sel].mean(0)),
                  np.sqrt(err2[sel].mean() / 3), err2[sel].sum() / err2.sum(),
-                 np.median(data["angle"][sel]), np.nanmean(data["sun"][sel])))
+                 np.median(angle[sel]), angle[sel].sum() / angle.sum(),
+                 np.nanmean(data["sun"][sel])))
 
 
 def main():

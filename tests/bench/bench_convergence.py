@@ -294,7 +294,8 @@ def plot(rows, path: Path):
     img = np.full((380, 1180, 3), 255, np.uint8)
     xmax = max([r.wall_s / 60 for r in rows if r.wall_s] + [1.0]) * 1.1
     psnr, intensity, materials = [], [], []
-    variants = sorted({r.variant for r in rows})
+    # In the order the rows came: this run's (or the first --merge file's) are drawn bright.
+    variants = list(dict.fromkeys(r.variant for r in rows))
     for case in CASES:
         for variant in variants:
             rs = sorted((r for r in rows if r.case == case and r.variant == variant and r.wall_s),
