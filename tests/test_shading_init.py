@@ -117,6 +117,20 @@ def test_sun_and_visibility_settle_together():
     assert lowered == 0 and raised == 0 and np.allclose(E1, E0) and np.array_equal(v1, t["traced"])
 
 
+def test_settling_without_groups_keeps_the_start():
+    # No shadowed Gaussian anywhere: no estimate to alternate with, so the
+    # starting irradiance and its source stand; NaN colours stay out.
+    s = _street(missed=0.0)
+    lit = s["true_v"] > 0
+    colour = s["colour"][lit].copy()
+    colour[:5] = np.nan
+    E, v, source, lowered, raised = shading_init.settle_sun_and_visibility(
+        colour, s["sky"][lit], np.array([2.0, 2.0, 2.0]), "selection", s["traced"][lit],
+        s["cos"][lit], s["normals"][lit], s["seen"][lit], s["lidar"][lit], 2.0)
+    assert np.allclose(E, 2.0) and source == "selection"
+    assert np.all(np.isfinite(v)) and np.all(np.isfinite(E))
+
+
 def test_no_groups_no_estimate_and_nan_colour_is_ignored():
     s = _street()
     all_lit = np.ones_like(s["traced"])
