@@ -198,16 +198,21 @@ def test_fit_without_lidar_scans_runs_on_images_alone(scene_path, tmp_path):
 def test_sun_visibility_learned_or_traced(scene_path, tmp_path, mode):
     from mi_invrgbl.physics.gaussian_ply import read_ply
     out = tmp_path / mode
+    # The traced case also takes Smith's shadowing term: the fitted scene keeps it.
+    shadowing = "smith" if mode == "trace" else "vcavity"
     metrics = run_fit(scene_path, small_config(out, sun="on", sun_visibility=mode,
-                                               render_samples="8"), log=lambda *a: None)
+                                               render_samples="8", shadowing=shadowing),
+                      log=lambda *a: None)
     init = metrics["selection"]["shading_init"]
     assert np.all(np.isfinite(init["sun_irradiance"])) and min(init["sun_irradiance"]) > 0
     text = (out / "scene.xml").read_text()
     assert ('name="sun_visibility" value="attribute"' in text) == (mode == "learn")
+    assert 'name="shadowing" value="%s"' % shadowing in text
     v = read_ply(str(out / "background.ply")).sun_visibility
     assert np.all((v >= 0) & (v <= 1))
     assert 0.02 < np.mean(v < 0.5) < 0.98      # the facade's shadow, and sunlit ground
     scene = mi.load_file(str(out / "scene.xml"))
+    assert scene.integrator().shadowing == shadowing
     cam = [s for s in scene.sensors() if s.id() == "camera_0004"][0]
     img = np.array(mi.render(scene, sensor=cam, spp=2))
     assert np.isfinite(img).all() and img[..., :3].mean() > 0.05

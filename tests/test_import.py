@@ -485,6 +485,12 @@ def test_bad_options(street, tmp_path):
     with pytest.raises(UserError, match="--image-scale"):
         import_scene(street, tmp_path / "o" / "scene.xml", ImportOptions(image_scale=2),
                      log=_quiet)
+    with pytest.raises(UserError, match="--roughness"):
+        import_scene(street, tmp_path / "o" / "scene.xml", ImportOptions(roughness=0.0),
+                     log=_quiet)
+    with pytest.raises(UserError, match="--roughness"):
+        import_scene(street, tmp_path / "o" / "scene.xml", ImportOptions(roughness=float("nan")),
+                     log=_quiet)
     with pytest.raises(UserError, match="scene.xml"):
         import_scene(street, tmp_path / "o", log=_quiet)
 
@@ -493,11 +499,13 @@ def test_cli(street, tmp_path, capsys):
     from mi_invrgbl.cli import main
     out = tmp_path / "cli" / "scene.xml"
     assert main(["import", str(street), "-o", str(out), "--frames", "0:2",
-                 "--max-points", "5000", "--azimuth-steps", "256", "--image-scale", "0.5"]) == 0
+                 "--max-points", "5000", "--azimuth-steps", "256", "--image-scale", "0.5",
+                 "--roughness", "0.8"]) == 0
     text = capsys.readouterr().out
     for step in ("read", "odometry", "accumulate", "normals", "objects", "colours", "write"):
         assert step in text
     assert Frames.load(out).camera.width == 32
+    assert np.allclose(read_ply(str(out.parent / "background.ply")).roughness, 0.8)
     assert main(["import", str(tmp_path / "missing"), "-o", str(tmp_path / "x" / "s.xml")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "missing" in err[0]

@@ -44,6 +44,8 @@ def add_parser(subparsers):
                    help="neighbours for normals and scales (default %(default)s)")
     p.add_argument("--opacity", type=float, default=d.opacity,
                    help="initial opacity (default %(default)s)")
+    p.add_argument("--roughness", type=float, default=d.roughness,
+                   help="roughness stage 2 starts from (GGX alpha in [0.02, 1]; default %(default)s)")
     p.add_argument("--min-range", type=float, default=d.min_range,
                    help="ignore closer LiDAR points for the background (default %(default)s m)")
     p.add_argument("--max-range", type=float, default=d.max_range,
@@ -77,7 +79,8 @@ def options_from_args(args):
         frames=args.frames, max_points=args.max_points, voxel=args.voxel,
         azimuth_steps=args.azimuth_steps, image_scale=args.image_scale, seed=args.seed,
         dynamic=args.dynamic, object_points=args.object_points, knn=args.knn,
-        opacity=args.opacity, min_range=args.min_range, max_range=args.max_range,
+        opacity=args.opacity, roughness=args.roughness,
+        min_range=args.min_range, max_range=args.max_range,
         intensity=args.intensity, beams=args.beams, sky_order=args.sky_order,
         extend_walls=args.extend_walls, triangulate=args.triangulate,
         motion=args.motion,

@@ -75,7 +75,8 @@ def integrator_like(scene, samples=None, sun_visibility=None):
                          "bounces": integ.bounces, "max_hits": integ.max_hits,
                          "min_transmittance": integ.min_transmittance,
                          "sun_visibility": sun_visibility or integ.sun_visibility,
-                         "f0": integ.f0, "hide_emitters": integ.hide_emitters})
+                         "f0": integ.f0, "hide_emitters": integ.hide_emitters,
+                         "shadowing": integ.shadowing})
 
 
 def find_sky(scene):

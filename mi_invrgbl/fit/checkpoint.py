@@ -15,6 +15,7 @@ import mitsuba as mi
 
 from ..errors import UserError
 from ..outdir import atomic_write
+from .config import FitConfig
 from .init import sh_mask
 from .render import Response
 from .state import FitState
@@ -50,8 +51,11 @@ def check_fingerprint(path, saved, current):
                        ("gaussians", "the Gaussian counts")):
         if saved.get(part) != current[part]:
             differ.append(what)
+    # An option a checkpoint predates had its default value then.
+    defaults = FitConfig().model_fields()
     options = sorted(k for k in current["config"]
-                     if json.dumps(saved.get("config", {}).get(k)) != json.dumps(current["config"][k]))
+                     if json.dumps(saved.get("config", {}).get(k, defaults.get(k)))
+                     != json.dumps(current["config"][k]))
     if options:
         differ.append("option(s) %s" % ", ".join(options))
     if differ:

@@ -10,7 +10,7 @@ from .losses import LossWeights
 #: cannot be resumed). Iteration counts, logging, output and the options that
 #: only force a selection (whose outcome the checkpoint records) are not among them.
 MODEL_FIELDS = ("batch_rays", "fit_width", "lidar_columns", "max_hits", "min_transmittance",
-                "samples", "sky_patterns", "bounces", "weights", "bilateral_sigma", "slic_size", "lr_scale", "densify_every",
+                "samples", "sky_patterns", "bounces", "shadowing", "weights", "bilateral_sigma", "slic_size", "lr_scale", "densify_every",
                 "densify_until", "prune_opacity", "densify_grad", "densify_fraction", "split_scale",
                 "max_gaussians", "stage1_range", "stage1_drop", "seed", "fit_response",
                 "sun_candidates", "sun_gaussians", "per_frame_visibility", "learn_sun_direction",
@@ -32,6 +32,9 @@ class FitConfig:
     #: Diffuse bounces between Gaussians in stage 2's shading and in the
     #: fitted scene's integrator (:mod:`..physics.lighting`); 0: direct light only.
     bounces: int = 1
+    #: Shadowing-masking term of the Gaussians' specular lobe in stage 2 and
+    #: in the fitted scene's integrator: "vcavity" (the paper's) or "smith".
+    shadowing: str = "vcavity"
     #: Stage 2 turns each Gaussian's M sky directions to another of this many
     #: patterns every step (each pattern's visibility is traced once), so the
     #: albedo fits the sky integral rather than one fixed set of directions.

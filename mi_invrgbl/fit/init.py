@@ -52,6 +52,8 @@ def load_state(scene_path, config: FitConfig, log=print) -> FitState:
     camera_integrator = scene.integrator()
     if not hasattr(camera_integrator, "shade_gaussian_hits"):
         camera_integrator = mi.load_dict({"type": "invrgbl", "samples": config.samples})
+    # The fit's choice, whatever the imported scene's integrator says.
+    camera_integrator.shadowing = config.shadowing
     lidar_integrator = mi.load_dict({"type": "lidar_return", "max_hits": config.max_hits,
                                      "min_transmittance": config.min_transmittance})
     sky = None

@@ -46,7 +46,8 @@ def fitted_xml(ctx, lidar=False):
                                beam_gains=xml.numbers_text(np.array(r.beam_gains)))
     else:
         samples = ctx.selection.get("samples", {}).get("samples", ctx.config.samples)
-        integ = xml.integrator("invrgbl", samples=int(samples), bounces=int(ctx.config.bounces))
+        integ = xml.integrator("invrgbl", samples=int(samples), bounces=int(ctx.config.bounces),
+                               shadowing=str(ctx.config.shadowing))
         if ctx.sun_visibility_learned:
             # The fitted v_sun holds for the fitted sun; relight/night switch to trace.
             xml.set_child_param(integ, "string", "sun_visibility", "attribute")

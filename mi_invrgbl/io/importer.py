@@ -118,6 +118,8 @@ class ImportOptions:
             raise UserError(f"--intensity must be auto, raw or reflectivity (got {self.intensity})")
         if not 0 < self.opacity < 1:
             raise UserError(f"--opacity must lie in (0, 1) (got {self.opacity})")
+        if not 0.02 <= self.roughness <= 1:
+            raise UserError(f"--roughness must lie in [0.02, 1] (got {self.roughness})")
         if self.knn < 3:
             raise UserError(f"--knn must be at least 3 (got {self.knn})")
         if self.object_points < 10:

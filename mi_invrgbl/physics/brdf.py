@@ -5,7 +5,13 @@ specular lobe ``F D G / (4 cos_i cos_o)`` with
 
 * ``D``: GGX with ``alpha = roughness`` (not roughness squared, as in the paper),
 * ``G``: the Cook-Torrance V-cavity term
-  ``min(1, 2 cos_h cos_o / (o.h), 2 cos_h cos_i / (o.h))``,
+  ``min(1, 2 cos_h cos_o / (o.h), 2 cos_h cos_i / (o.h))`` (the paper's), or on
+  request (``shadowing="smith"``) Smith's separable GGX term
+  ``G1(i) G1(o)``, ``G1(w) = 2 / (1 + sqrt(1 + alpha^2 tan^2 w))`` (Mitsuba's
+  microfacet models). They agree up to about 60 degrees; towards grazing the
+  V-cavity term shadows far less: under a uniform sky the specular lobe of
+  roughness 0.5 reflects 0.14 of the light at 80 degrees from the normal with
+  V-cavity and Schlick, 0.07 with Smith and a dielectric's Fresnel (IOR 1.5),
 * ``F``: Schlick's Fresnel around ``f0`` (0.04 by default). When light and
   viewer coincide (``o.h = 1``) Schlick's term is exactly ``f0``, which is the
   constant the paper uses for LiDAR.
@@ -13,7 +19,8 @@ specular lobe ``F D G / (4 cos_i cos_o)`` with
 All functions work on Dr.Jit arrays in the local shading frame (normal = +z)
 and are written so that grazing angles and roughness -> 0 stay finite:
 ``G / (4 cos_i cos_o)`` is evaluated as the minimum of three bounded ratios
-instead of dividing a product of small numbers by another one.
+(V-cavity) or as one product bounded by ``1 / alpha^2`` (Smith) instead of
+dividing a product of small numbers by another one.
 """
 
 from __future__ import annotations
@@ -28,6 +35,8 @@ F0_DEFAULT = 0.04
 MIN_ALPHA = 1e-3
 #: Cosines below this are treated as grazing (no contribution).
 COS_EPS = 1e-6
+#: Shadowing-masking terms ``specular`` offers: the paper's first.
+SHADOWING = ("vcavity", "smith")
 
 
 def clamp_alpha(roughness):
@@ -64,6 +73,25 @@ def vcavity_g_over_4cos(cos_i, cos_o, cos_h, o_dot_h):
                       dr.minimum(ch / (2.0 * ci * oh), ch / (2.0 * co * oh)))
 
 
+def smith_g1(cos_w, alpha):
+    """Smith's GGX masking ``G1(w) = 2 / (1 + sqrt(1 + alpha^2 tan^2 w))``
+    (``2 cos / (cos + sqrt(alpha^2 + (1 - alpha^2) cos^2))``, finite at cos -> 0)."""
+    c = dr.maximum(cos_w, 0.0)
+    a2 = dr.square(alpha)
+    return 2.0 * c / dr.maximum(c + dr.sqrt(a2 + (1.0 - a2) * dr.square(c)), COS_EPS)
+
+
+def smith_g_over_4cos(cos_i, cos_o, alpha):
+    """``G1(i) G1(o) / (4 cos_i cos_o)``, evaluated as
+    ``1 / ((c_i + s_i)(c_o + s_o))`` with ``s = sqrt(alpha^2 + (1 - alpha^2) c^2)``:
+    bounded by ``1 / alpha^2`` at grazing angles."""
+    a2 = dr.square(alpha)
+    ci, co = dr.maximum(cos_i, 0.0), dr.maximum(cos_o, 0.0)
+    si = dr.sqrt(a2 + (1.0 - a2) * dr.square(ci))
+    so = dr.sqrt(a2 + (1.0 - a2) * dr.square(co))
+    return dr.rcp(dr.maximum((ci + si) * (co + so), COS_EPS))
+
+
 def schlick_f(f0, i_dot_h):
     """Schlick's Fresnel approximation around ``f0``."""
     m = dr.clip(1.0 - i_dot_h, 0.0, 1.0)
@@ -71,11 +99,12 @@ def schlick_f(f0, i_dot_h):
     return f0 + (1.0 - f0) * (m2 * m2 * m)
 
 
-def specular(wi, wo, roughness, f0=F0_DEFAULT):
+def specular(wi, wo, roughness, f0=F0_DEFAULT, shadowing="vcavity"):
     """Cook-Torrance specular BRDF value f_s(wi, wo) (no cosine factor).
 
     ``wi`` and ``wo`` are unit vectors in the local frame pointing away from
     the surface. Returns 0 where either lies below the surface.
+    ``shadowing``: ``"vcavity"`` (the paper's) or ``"smith"`` (see the module).
     """
     cos_i = mi.Frame3f.cos_theta(wi)
     cos_o = mi.Frame3f.cos_theta(wo)
@@ -83,8 +112,14 @@ def specular(wi, wo, roughness, f0=F0_DEFAULT):
     cos_h = mi.Frame3f.cos_theta(h)
     o_dot_h = dr.dot(wo, h)
     alpha = clamp_alpha(roughness)
+    if shadowing == "vcavity":
+        g = vcavity_g_over_4cos(cos_i, cos_o, cos_h, o_dot_h)
+    elif shadowing == "smith":
+        g = smith_g_over_4cos(cos_i, cos_o, alpha)
+    else:
+        raise ValueError("shadowing must be one of %s (got %r)" % (", ".join(SHADOWING), shadowing))
     value = (schlick_f(f0, dr.dot(wi, h)) * ggx_d(cos_h, alpha, dr.square(h.x) + dr.square(h.y))
-             * vcavity_g_over_4cos(cos_i, cos_o, cos_h, o_dot_h))
+             * g)
     return dr.select((cos_i > COS_EPS) & (cos_o > COS_EPS), value, 0.0)
 
 

@@ -48,6 +48,12 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
      * - f0
        - |float|
        - Fresnel reflectance at normal incidence of the Gaussians. (Default: 0.04)
+     * - shadowing
+       - |string|
+       - Shadowing-masking term of the Gaussians' specular lobe: ``vcavity``
+         (the paper's Cook-Torrance V-cavity) or ``smith`` (Smith's GGX term,
+         as Mitsuba's microfacet BSDFs; it reflects about half as much near
+         grazing, see :mod:`mi_invrgbl.physics.brdf`). (Default: ``vcavity``)
      * - hide_emitters
        - |bool|
        - Show the background as black instead of the sky. (Default: false)
@@ -96,6 +102,10 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
         self.sun_visibility = str(props.get("sun_visibility", "trace"))
         self.f0 = float(props.get("f0", brdf.F0_DEFAULT))
         self.hide_emitters = bool(props.get("hide_emitters", False))
+        self.shadowing = str(props.get("shadowing", "vcavity"))
+        if self.shadowing not in brdf.SHADOWING:
+            raise ValueError("invrgbl: shadowing must be one of %s (got %r)"
+                             % (", ".join(brdf.SHADOWING), self.shadowing))
         if self.samples < 1:
             raise ValueError("invrgbl: samples must be >= 1")
         if self.max_hits < 1:
@@ -131,7 +141,7 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
             wl = frame.to_local(dr.gather(mi.Vector3f, d_l, gidx, active))
             e = dr.gather(mi.Color3f, e_l, gidx, active)
             cos_l = dr.maximum(mi.Frame3f.cos_theta(wl), 0.0)
-            specular += e * cos_l * brdf.specular(wl, wo, tau, self.f0)
+            specular += e * cos_l * brdf.specular(wl, wo, tau, self.f0, self.shadowing)
         # Specular sky: pi/M sum_i f_s(w_i, w_o) v_i L(w_i) over the Gaussian's samples.
         M = lighting.samples
         # The sample directions are a fixed spiral in each Gaussian's normal
@@ -142,7 +152,7 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
             j = gidx * M + i
             wi = fibonacci_direction(mi.Float(i), M, rot)
             li = dr.gather(mi.Color3f, lighting.sky_radiance, j, active)
-            specular += li * brdf.specular(wi, wo, tau, self.f0) * (dr.pi / M)
+            specular += li * brdf.specular(wi, wo, tau, self.f0, self.shadowing) * (dr.pi / M)
         colour = albedo * irradiance_pi + specular
         colour = dr.select(active & dr.all(dr.isfinite(colour)), colour, 0.0)
         return colour, albedo, n, tau, rho_l
