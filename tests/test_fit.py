@@ -198,7 +198,7 @@ def test_fit_without_lidar_scans_runs_on_images_alone(scene_path, tmp_path):
 def test_sun_visibility_learned_or_traced(scene_path, tmp_path, mode):
     from mi_invrgbl.physics.gaussian_ply import read_ply
     out = tmp_path / mode
-    # The traced case also takes Smith's shadowing term: the fitted scene keeps it.
+    # Each case takes another shadowing term: the fitted scene keeps its own.
     shadowing = "smith" if mode == "trace" else "vcavity"
     metrics = run_fit(scene_path, small_config(out, sun="on", sun_visibility=mode,
                                                render_samples="8", shadowing=shadowing),

@@ -68,6 +68,7 @@ def camera_integrator(state, stage2):
     return mi.load_dict({"type": "invrgbl", "samples": state.config.samples,
                          "bounces": state.config.bounces, "max_hits": state.config.max_hits,
                          "min_transmittance": state.config.min_transmittance,
+                         "shadowing": state.config.shadowing,
                          "sun_visibility": "attribute" if stage2.learn_sun_visibility else "trace"})
 
 

@@ -36,8 +36,8 @@ FLAGS = (
      "diffuse bounces of light between Gaussians in the shading (0: direct sun and sky "
      "light only, as in the paper)", {}),
     ("--shadowing", "shadowing",
-     "shadowing-masking term of the specular lobe: the paper's V-cavity, or Smith's GGX term "
-     "(about half the specular near grazing angles)", {"choices": ("vcavity", "smith")}),
+     "shadowing-masking term of the specular lobe: Smith's GGX term, or the paper's V-cavity "
+     "(about twice the specular near grazing angles)", {"choices": ("smith", "vcavity")}),
     ("--render-samples", "render_samples",
      "sky samples M written into the fitted scene.xml: 'auto' (the smallest of 4/8/16/32 "
      "within 0.1 dB of the best validation PSNR) or a number", {}),

@@ -33,8 +33,13 @@ class FitConfig:
     #: fitted scene's integrator (:mod:`..physics.lighting`); 0: direct light only.
     bounces: int = 1
     #: Shadowing-masking term of the Gaussians' specular lobe in stage 2 and
-    #: in the fitted scene's integrator: "vcavity" (the paper's) or "smith".
-    shadowing: str = "vcavity"
+    #: in the fitted scene's integrator: "smith" or "vcavity" (the paper's).
+    #: Towards grazing the V-cavity lobe reflects about twice as much sky,
+    #: which a facade seen along a street in shadow can only answer with
+    #: near-zero albedo. On two synthetic streets (fixed 300/300 iterations,
+    #: one run each) Smith scored 0.73 and 0.09 dB higher on the validation
+    #: frames and cut the roughness error from 0.32 to 0.27 and 0.31 to 0.27.
+    shadowing: str = "smith"
     #: Stage 2 turns each Gaussian's M sky directions to another of this many
     #: patterns every step (each pattern's visibility is traced once), so the
     #: albedo fits the sky integral rather than one fixed set of directions.
