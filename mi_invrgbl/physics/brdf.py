@@ -5,13 +5,14 @@ specular lobe ``F D G / (4 cos_i cos_o)`` with
 
 * ``D``: GGX with ``alpha = roughness`` (not roughness squared, as in the paper),
 * ``G``: the Cook-Torrance V-cavity term
-  ``min(1, 2 cos_h cos_o / (o.h), 2 cos_h cos_i / (o.h))`` (the paper's), or on
-  request (``shadowing="smith"``) Smith's separable GGX term
+  ``min(1, 2 cos_h cos_o / (o.h), 2 cos_h cos_i / (o.h))`` (the paper's), or
+  (``shadowing="smith"``, the fit's default) Smith's separable GGX term
   ``G1(i) G1(o)``, ``G1(w) = 2 / (1 + sqrt(1 + alpha^2 tan^2 w))`` (Mitsuba's
-  microfacet models). They agree up to about 60 degrees; towards grazing the
+  microfacet models). They agree at normal incidence; towards grazing the
   V-cavity term shadows far less: under a uniform sky the specular lobe of
-  roughness 0.5 reflects 0.14 of the light at 80 degrees from the normal with
-  V-cavity and Schlick, 0.07 with Smith and a dielectric's Fresnel (IOR 1.5),
+  roughness 0.5 seen 80 degrees from the normal reflects 0.138 of the light
+  with V-cavity and 0.066 with Smith (Schlick's F in both; computed in
+  ``tests/test_shadowing.py``),
 * ``F``: Schlick's Fresnel around ``f0`` (0.04 by default). When light and
   viewer coincide (``o.h = 1``) Schlick's term is exactly ``f0``, which is the
   constant the paper uses for LiDAR.
@@ -73,23 +74,25 @@ def vcavity_g_over_4cos(cos_i, cos_o, cos_h, o_dot_h):
                       dr.minimum(ch / (2.0 * ci * oh), ch / (2.0 * co * oh)))
 
 
+def _smith_denominator(cos_w, alpha):
+    """``c + sqrt(alpha^2 + (1 - alpha^2) c^2)`` with ``c = max(cos_w, 0)``:
+    ``G1(w) = 2 c / this``, and it stays >= alpha at grazing angles."""
+    c = dr.maximum(cos_w, 0.0)
+    a2 = dr.square(alpha)
+    return c + dr.sqrt(a2 + (1.0 - a2) * dr.square(c))
+
+
 def smith_g1(cos_w, alpha):
     """Smith's GGX masking ``G1(w) = 2 / (1 + sqrt(1 + alpha^2 tan^2 w))``
     (``2 cos / (cos + sqrt(alpha^2 + (1 - alpha^2) cos^2))``, finite at cos -> 0)."""
-    c = dr.maximum(cos_w, 0.0)
-    a2 = dr.square(alpha)
-    return 2.0 * c / dr.maximum(c + dr.sqrt(a2 + (1.0 - a2) * dr.square(c)), COS_EPS)
+    return 2.0 * dr.maximum(cos_w, 0.0) / dr.maximum(_smith_denominator(cos_w, alpha), COS_EPS)
 
 
 def smith_g_over_4cos(cos_i, cos_o, alpha):
-    """``G1(i) G1(o) / (4 cos_i cos_o)``, evaluated as
-    ``1 / ((c_i + s_i)(c_o + s_o))`` with ``s = sqrt(alpha^2 + (1 - alpha^2) c^2)``:
-    bounded by ``1 / alpha^2`` at grazing angles."""
-    a2 = dr.square(alpha)
-    ci, co = dr.maximum(cos_i, 0.0), dr.maximum(cos_o, 0.0)
-    si = dr.sqrt(a2 + (1.0 - a2) * dr.square(ci))
-    so = dr.sqrt(a2 + (1.0 - a2) * dr.square(co))
-    return dr.rcp(dr.maximum((ci + si) * (co + so), COS_EPS))
+    """``G1(i) G1(o) / (4 cos_i cos_o)``, evaluated as the product of the two
+    denominators' reciprocals: bounded by ``1 / alpha^2`` at grazing angles."""
+    return dr.rcp(dr.maximum(_smith_denominator(cos_i, alpha) * _smith_denominator(cos_o, alpha),
+                             COS_EPS))
 
 
 def schlick_f(f0, i_dot_h):
