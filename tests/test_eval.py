@@ -276,6 +276,50 @@ def test_eval_raw_point_score_and_full_baseline(fit_dir, capsys):
         row["raw_baseline_intensity_rmse"])
 
 
+def test_eval_image_baseline_is_the_nearest_training_image(fit_dir, capsys):
+    """The camera's lookup baseline shows the nearest training frame (frame 1,
+    1 m from the scored frame 2; frame 0 is 2 m away) unchanged and scores it
+    like a render."""
+    from mi_invrgbl.cli import main
+    from mi_invrgbl.eval import metrics as M
+    from mi_invrgbl.eval.inputs import read_png
+    out = fit_dir / "img.json"
+    assert main(["eval", str(fit_dir), "-o", str(out), "--no-relight"]) == 0
+    assert "NN-PSNR" in capsys.readouterr().out
+    row = json.loads(out.read_text())["frames"][0]
+    assert row["baseline_frame"] == 1
+    obs = fit_dir / "observations"
+    shown, truth = read_png(obs / "image_0001.png"), read_png(obs / "image_0002.png")
+    assert row["baseline_psnr"] == pytest.approx(M.psnr(shown, truth, 1.0), abs=1e-9)
+    assert row["baseline_psnr"] < 60        # the object moved and the camera with it
+    assert row["psnr"] > row["baseline_psnr"]
+    assert 0 < row["baseline_ssim"] < 1
+
+
+def test_nearest_training_frame_rules(tmp_path):
+    """Never a held-out or scored frame, nor one looking elsewhere, nor one
+    without an image; None when nothing is left."""
+    from types import SimpleNamespace
+    from mi_invrgbl.eval.baselines import nearest_training_frame
+    img = tmp_path / "i.png"
+    img.write_bytes(b"png")
+
+    def rec(x, held=False, yaw_deg=0.0, image=True):
+        m = cam_to_world(0)
+        c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
+        m[:3, :3] = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]) @ m[:3, :3]
+        m[:3, 3] = [x, 0.0, 1.5]
+        return SimpleNamespace(camera_to_world=m, held_out=held, image=str(img) if image else None)
+
+    # positions: 0 scored; 1 held out (nearest); 2 looks sideways (next
+    # nearest); 3 has no image; 4 is the nearest usable one; 5 is farther.
+    frames = [rec(0.0), rec(0.1, held=True), rec(0.2, yaw_deg=60), rec(0.3, image=False),
+              rec(0.5, yaw_deg=30), rec(2.0)]
+    assert nearest_training_frame(frames, 0, [0]) == 4
+    assert nearest_training_frame(frames, 0, [0, 4]) == 5
+    assert nearest_training_frame(frames, 0, [0, 4, 5]) is None
+
+
 def test_lookup_keeps_every_training_point(tmp_path):
     """More points than any former subsample cap (2e6): all kept, still fast."""
     import time

@@ -1,6 +1,9 @@
-"""The nearest-neighbour LiDAR intensity baseline.
+"""Lookup baselines: what the training data give without any model.
 
-A held-out scan's intensity is predicted, beam by beam, as the intensity of
+* LiDAR: the nearest-neighbour intensity (:class:`NearestNeighbourIntensity`).
+* Camera: the nearest training image (:func:`nearest_training_frame`).
+
+LiDAR: a held-out scan's intensity is predicted, beam by beam, as the intensity of
 the closest point among all *training* scans (world frame). This is what a
 LiDAR simulator without any reflectance model achieves from the same data:
 InvRGB+L's intensity RMSE should beat it, most of all where the held-out
@@ -125,3 +128,38 @@ def from_frames(frames, indices=None, **kwargs) -> NearestNeighbourIntensity:
         raise ValueError("no training frame has a points file")
     max_points = kwargs.pop("max_points", None)
     return NearestNeighbourIntensity(load_points(paths, max_points), **kwargs)
+
+
+#: The nearest training image must look within this angle of the scored
+#: camera's optical axis (degrees); beyond it the two views barely overlap.
+IMAGE_BASELINE_MAX_ANGLE_DEG = 45.0
+
+
+def nearest_training_frame(frames, k, positions):
+    """Position of the training frame whose camera is nearest to frame ``k``'s
+    (centre distance, among frames neither held out nor scored, with an
+    image, looking within :data:`IMAGE_BASELINE_MAX_ANGLE_DEG` of frame
+    ``k``'s axis); None if there is none.
+
+    Its image, shown unchanged at frame ``k``, is the camera's lookup
+    baseline: what a viewer that only replays the recording gives. Between
+    the frames of a slowly driving car it is strong (a slow drive changes
+    little from frame to frame), so a fit that scores below it has not learnt
+    the scene."""
+    held = set(positions) | {j for j in range(len(frames)) if frames[j].held_out}
+    here = np.asarray(frames[k].camera_to_world, np.float64)
+    axis = here[:3, 2] / max(np.linalg.norm(here[:3, 2]), 1e-12)
+    cos_max = np.cos(np.radians(IMAGE_BASELINE_MAX_ANGLE_DEG))
+    best, best_d = None, np.inf
+    for j in range(len(frames)):
+        rec = frames[j]
+        if j in held or rec.image is None or not os.path.isfile(rec.image):
+            continue
+        other = np.asarray(rec.camera_to_world, np.float64)
+        a = other[:3, 2] / max(np.linalg.norm(other[:3, 2]), 1e-12)
+        if float(a @ axis) < cos_max:
+            continue
+        d = float(np.linalg.norm(other[:3, 3] - here[:3, 3]))
+        if d < best_d:
+            best, best_d = j, d
+    return best

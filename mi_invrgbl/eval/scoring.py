@@ -11,6 +11,9 @@ with ``lidar_return``, and the renders are compared with the observations:
   (``frames.json`` ``masks``), also the PSNR outside it (``psnr_static``),
   inside it (``psnr_moving``: moving things no node models) and the masked
   share of the pixels (``moving_fraction``).
+* camera lookup baseline: the nearest training frame's image shown
+  unchanged (:func:`mi_invrgbl.eval.baselines.nearest_training_frame`),
+  its PSNR and SSIM (``baseline_psnr``, ``baseline_ssim``, ``baseline_frame``).
 * LiDAR: intensity RMSE over the beams that return in the observation,
   range error (mean |dr| where both return), ray-drop accuracy (all beams),
   and the nearest-neighbour baseline's intensity RMSE on the same beams
@@ -56,6 +59,7 @@ from ..scene.frames import Frames, json_safe, write_json
 from ..scene.loading import load_scene
 from ..scene.posing import set_frame
 from . import metrics as M
+from .baselines import nearest_training_frame
 from .ground_truth import gt_alignment, ground_truth_metrics, load_lights, source_number, sun_metrics
 from .inputs import read_channels, read_json_dict, read_png, resolve_inputs, select_frames
 from .rendering import SkySwap, find_sky, integrator_like, load_lidar_integrator, render_camera, render_lidar
@@ -65,6 +69,7 @@ PSNR_CAP = 100.0
 
 #: Columns of the printed table: (key, header, format).
 TABLE = (("psnr", "PSNR", "%6.2f"), ("ssim", "SSIM", "%6.4f"),
+         ("baseline_psnr", "NN-PSNR", "%7.2f"),
          ("psnr_static", "PSNR-st", "%7.2f"), ("psnr_moving", "PSNR-mv", "%7.2f"),
          ("lidar_intensity_rmse", "I-RMSE", "%7.4f"), ("baseline_intensity_rmse", "NN-RMSE", "%7.4f"),
          ("range_error", "range", "%6.3f"), ("ray_drop_accuracy", "drop-acc", "%8.4f"),
@@ -124,7 +129,7 @@ def _mean(rows):
     keys = []
     for r in rows:
         keys += [k for k, v in r.items() if k not in keys and isinstance(v, (int, float))
-                 and not isinstance(v, bool) and k not in ("index", "position")]
+                 and not isinstance(v, bool) and k not in ("index", "position", "baseline_frame")]
     out = {}
     for k in keys:
         vals = [r[k] for r in rows if isinstance(r.get(k), (int, float)) and r[k] is not None
@@ -208,9 +213,24 @@ def raw_point_pass(scene, frames, positions, rows, lidar_integ, lookup, log=prin
     return pooled
 
 
+def image_baseline(frames, k, positions, observed) -> dict:
+    """The camera lookup baseline's scores at frame ``k`` (empty without a
+    usable training image)."""
+    j = nearest_training_frame(frames, k, positions)
+    if j is None:
+        return {}
+    shown = read_png(frames[j].image)
+    if shown.shape != observed.shape:
+        return {}
+    return {"baseline_frame": frames[j].index,
+            "baseline_psnr": min(M.psnr(shown, observed, 1.0), PSNR_CAP),
+            "baseline_ssim": M.ssim(shown, observed, 1.0)}
+
+
 def score_frame(scene, frames, k, spp, cam_integ, lidar_integ, nn=None, gt_dir=None,
-                R=np.eye(3), save_renders=None, log=print) -> dict:
-    """One frame's row: camera, LiDAR and ground-truth metrics."""
+                R=np.eye(3), save_renders=None, log=print, positions=()) -> dict:
+    """One frame's row: camera, LiDAR and ground-truth metrics (``positions``:
+    every scored frame, none of which the image baseline may show)."""
     rec = frames[k]
     t = time.time()
     cam_sensor, lidar_sensor = set_frame(scene, frames, k)
@@ -222,6 +242,7 @@ def score_frame(scene, frames, k, spp, cam_integ, lidar_integ, nn=None, gt_dir=N
     if rec.image is not None:
         observed = read_png(rec.image)
         row.update(image_metrics(cam["rgb"], observed))
+        row.update(image_baseline(frames, k, positions, observed))
         if rec.masks.get("camera") is not None and Path(rec.masks["camera"]).is_file():
             row.update(masked_image_metrics(cam["rgb"], observed, read_mask(
                 rec.masks["camera"], observed.shape[:2], "image %s" % Path(rec.image).name)))
@@ -304,7 +325,7 @@ def evaluate(scene_path, frames_spec="held-out", spp=0, samples=None, lidar_mode
         log("[eval] the scene has no shsun emitter: relighting score skipped")
 
     rows = [score_frame(scene, frames, k, spp, cam_integ, lidar_integ, nn, gt_dir, R,
-                        save_renders, log) for k in positions]
+                        save_renders, log, positions) for k in positions]
     raw = raw_point_pass(scene, frames, positions, rows, lidar_integ, lookup, log)
     if sky is not None:
         # A moved sun needs traced sun visibility, not the fitted per-Gaussian field.
@@ -321,6 +342,7 @@ def evaluate(scene_path, frames_spec="held-out", spp=0, samples=None, lidar_mode
             "lidar_response": str(scene_lidar) if scene_lidar else "default",
             "ground_truth": str(gt_dir) if gt_dir else None,
             "notes": {"psnr": "sRGB in [0, 1], peak 1; identical images = %g dB" % PSNR_CAP,
+                      "baseline_psnr": "the nearest training frame's image, unchanged",
                       "albedo_rmse": "per-channel least-squares scale fit, then RMSE",
                       "lidar_intensity_rmse": "range image: over beams that return in the "
                                               "observation",

@@ -11,7 +11,8 @@ street``, imported with ``--max-points 60000 --no-triangulate`` as in the README
 excerpt imported with ``--image-scale 0.25 --max-points 60000``) the bench
 imports once, then for every budget runs a real ``mi-invrgbl fit`` and
 ``mi-invrgbl eval`` on the held-out frames and prints one row: held-out PSNR
-and SSIM, albedo RMSE, normal error, relighting PSNR (street only: it has
+and SSIM, the PSNR of the camera's lookup baseline (the nearest training
+image shown unchanged; a fit below it has not learnt the scene), albedo RMSE, normal error, relighting PSNR (street only: it has
 ground truth), LiDAR intensity RMSE of the fit and of the nearest-neighbour
 baseline, the fit's peak memory and its wall time. The rows go to
 ``WORK/convergence.md`` and ``WORK/convergence.json``, and a plot of error
@@ -66,6 +67,8 @@ class Row:
     peak_mb: float | None = None
     wall_s: float | None = None
     variant: str = ""
+    #: The camera's lookup baseline: the nearest training image, unchanged.
+    nn_psnr: float | None = None
 
 
 def cli(variant, *args):
@@ -204,12 +207,13 @@ def fit_budget(case, scene: Path, budget, variant, args, cal, log) -> Row:
     return Row(case, budget, n1, n2, over, mean.get("psnr"), mean.get("ssim"),
                mean.get("albedo_rmse"), mean.get("normal_angle_deg"), mean.get("relight_psnr"),
                mean.get("lidar_intensity_rmse"), mean.get("baseline_intensity_rmse"),
-               fit.get("peak_rss_mb"), wall, variant)
+               fit.get("peak_rss_mb"), wall, variant, nn_psnr=mean.get("baseline_psnr"))
 
 
 COLUMNS = [("case", "case", "%s"), ("variant", "variant", "%s"), ("budget_min", "budget [min]", "%g"),
            ("stage1", "stage 1 it", "%d"), ("stage2", "stage 2 it", "%d"),
-           ("psnr", "PSNR [dB]", "%.2f"), ("ssim", "SSIM", "%.3f"),
+           ("psnr", "PSNR [dB]", "%.2f"), ("nn_psnr", "NN image PSNR [dB]", "%.2f"),
+           ("ssim", "SSIM", "%.3f"),
            ("albedo_rmse", "albedo RMSE", "%.3f"), ("normal_deg", "normal err [deg]", "%.1f"),
            ("relight_psnr", "relight PSNR [dB]", "%.2f"),
            ("intensity_rmse", "intensity RMSE", "%.4f"),
@@ -305,6 +309,8 @@ def plot(rows, path: Path):
             c = COLOURS[case] if variant == variants[0] else tuple(v // 2 for v in COLOURS[case])
             name = case + ("" if len(variants) == 1 else " " + variant.split("_")[0])
             psnr.append((name, c, [(r.wall_s / 60, r.psnr) for r in rs], False))
+            if any(r.nn_psnr is not None for r in rs):
+                psnr.append((name + " NN", c, [(r.wall_s / 60, r.nn_psnr) for r in rs], True))
             intensity.append((name, c, [(r.wall_s / 60, r.intensity_rmse) for r in rs], False))
             intensity.append((name + " NN", c, [(r.wall_s / 60, r.nn_intensity_rmse) for r in rs],
                               True))
