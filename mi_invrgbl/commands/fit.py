@@ -27,7 +27,8 @@ FLAGS = (
     ("--stage2", "stage2_iterations", "stage-2 (materials) iterations", {}),
     ("--width", "fit_width", "image width the fit works at", {}),
     ("--lidar-columns", "lidar_columns", "LiDAR azimuth columns used per scan", {}),
-    ("--batch", "batch_rays", "stage-1 rays per batch (camera and LiDAR each)", {}),
+    ("--batch", "batch_rays", "stage-1 camera rays per batch", {}),
+    ("--lidar-batch", "lidar_batch_rays", "stage-1 LiDAR beams per batch", {}),
     ("--samples", "samples", "sky samples M per Gaussian while fitting", {}),
     ("--sky-patterns", "sky_patterns",
      "stage 2 turns the sky directions to one of this many patterns each step, so the albedo "
@@ -133,7 +134,7 @@ def config_from_args(args):
         raise UserError("--resume and --overwrite exclude each other")
     for flag, name, _, _ in FLAGS:
         if name in ("stage1_iterations", "stage2_iterations", "fit_width", "lidar_columns",
-                    "batch_rays", "samples", "sky_patterns"):
+                    "batch_rays", "lidar_batch_rays", "samples", "sky_patterns"):
             if values[name] < (0 if name.startswith("stage") else 1):
                 raise UserError("%s must be positive" % flag)
     from ..physics.lighting import MAX_BOUNCES

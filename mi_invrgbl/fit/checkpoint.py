@@ -43,6 +43,10 @@ def fingerprint(ctx: FitState) -> dict:
             "config": ctx.config.model_fields()}
 
 
+#: Options a checkpoint may predate whose value then was another option's.
+PREDATED = {"lidar_batch_rays": "batch_rays"}
+
+
 def check_fingerprint(path, saved, current):
     if saved is None:
         raise UserError("%s: checkpoint has no fingerprint of its scene; cannot resume from it" % path)
@@ -51,11 +55,14 @@ def check_fingerprint(path, saved, current):
                        ("gaussians", "the Gaussian counts")):
         if saved.get(part) != current[part]:
             differ.append(what)
-    # An option a checkpoint predates had its default value then.
+    # An option a checkpoint predates had its default value then, or
+    # (PREDATED) the value another option gave it.
     defaults = FitConfig().model_fields()
+    was = saved.get("config", {})
+    then = {k: was[PREDATED[k]] if k in PREDATED and PREDATED[k] in was else defaults.get(k)
+            for k in current["config"]}
     options = sorted(k for k in current["config"]
-                     if json.dumps(saved.get("config", {}).get(k, defaults.get(k)))
-                     != json.dumps(current["config"][k]))
+                     if json.dumps(was.get(k, then[k])) != json.dumps(current["config"][k]))
     if options:
         differ.append("option(s) %s" % ", ".join(options))
     if differ:

@@ -9,7 +9,7 @@ from .losses import LossWeights
 #: Fields that change the fitted model (a checkpoint written with other values
 #: cannot be resumed). Iteration counts, logging, output and the options that
 #: only force a selection (whose outcome the checkpoint records) are not among them.
-MODEL_FIELDS = ("batch_rays", "fit_width", "lidar_columns", "max_hits", "min_transmittance",
+MODEL_FIELDS = ("batch_rays", "lidar_batch_rays", "fit_width", "lidar_columns", "max_hits", "min_transmittance",
                 "samples", "sky_patterns", "bounces", "shadowing", "weights", "bilateral_sigma", "slic_size", "lr_scale", "densify_every",
                 "densify_until", "prune_opacity", "densify_grad", "densify_fraction", "split_scale",
                 "max_gaussians", "stage1_range", "stage1_drop", "seed", "fit_response",
@@ -23,6 +23,11 @@ class FitConfig:
     stage1_iterations: int = 150
     stage2_iterations: int = 200
     batch_rays: int = 4096
+    #: Stage 1's LiDAR beams per step. The Gaussians start on the LiDAR
+    #: points, so the beams only keep the geometry from drifting; each costs
+    #: about what a camera ray does, and the camera rays are what a fit on a
+    #: CPU is short of (see the README's KITTI notes).
+    lidar_batch_rays: int = 1024
     fit_width: int = 320
     lidar_columns: int = 512
     max_hits: int = 24
@@ -69,6 +74,9 @@ class FitConfig:
     stage1_range: float = 1.0
     stage1_drop: float = 0.1
     eval_every: int = 50
+    #: Stage 1 scores its progress (held-out log, validation early stop) on
+    #: every n-th pixel that counts (:func:`.evaluate.score_stage1`).
+    score_stride: int = 4
     checkpoint_every: int = 50
     seed: int = 0
     resume: bool = False

@@ -50,7 +50,7 @@ class Stage1:
         self.grad_accum = {}
         self.build_optimizer()
         self.batch_camera = cfg.batch_rays
-        self.batch_lidar = cfg.batch_rays
+        self.batch_lidar = cfg.lidar_batch_rays
 
     def variables(self):
         """Geometry and the view-independent colour of every node, and the sky."""
