@@ -16,6 +16,7 @@ import mitsuba as mi
 from fit_scene import build
 from mi_invrgbl.fit.runner import FitConfig, run_fit
 from mi_invrgbl.fit.losses import LossWeights
+from mi_invrgbl.errors import UserError
 
 
 def small_config(out, **kw):
@@ -264,6 +265,42 @@ def test_cli_flags_reach_the_config():
     cfg = parse("--keep-sky-lookalikes", "--learn-sun-direction", "--sun-visibility", "trace")
     assert not cfg.prune_sky_lookalikes and cfg.learn_sun_direction and cfg.sun_visibility == "trace"
     assert default.budget_minutes == 0 and parse("--budget", "8").budget_minutes == 8
+    assert (default.batch_rays, default.lidar_batch_rays) == (4096, 1024)
+    cfg = parse("--batch", "2048", "--lidar-batch", "512")
+    assert (cfg.batch_rays, cfg.lidar_batch_rays) == (2048, 512)
+    with pytest.raises(UserError, match="--lidar-batch must be positive"):
+        parse("--lidar-batch", "0")
+
+
+def test_checkpoint_predating_an_option_resumes_with_its_value_then():
+    """A checkpoint written before ``lidar_batch_rays`` existed drew as many
+    LiDAR beams as camera rays: it resumes under that value, not the new
+    default, and other options still have to match."""
+    from mi_invrgbl.fit.checkpoint import check_fingerprint
+    now = FitConfig(batch_rays=2048, lidar_batch_rays=2048)
+    fp = {"scene": "s", "frames": "f", "gaussians": {"background": 3},
+          "config": now.model_fields()}
+    old = {**fp, "config": {k: v for k, v in fp["config"].items() if k != "lidar_batch_rays"}}
+    check_fingerprint("ckpt", old, fp)                       # 2048 then, 2048 now
+    fp_default = {**fp, "config": FitConfig(batch_rays=2048).model_fields()}
+    with pytest.raises(UserError, match="lidar_batch_rays"):
+        check_fingerprint("ckpt", old, fp_default)           # 2048 then, 1024 now
+    assert fp_default["config"]["lidar_batch_rays"] == 1024
+
+
+def test_stage1_score_on_a_pixel_subset(scene_path, tmp_path):
+    """Stage 1's progress score on every n-th counted pixel estimates the full
+    frame's PSNR, and scores the same pixels each time."""
+    from mi_invrgbl.fit.evaluate import score_stage1
+    from mi_invrgbl.fit.init import load_state
+    state = load_state(scene_path, small_config(tmp_path), log=lambda *a: None)
+    frames = state.train_frames[:2]
+    full = score_stage1(state, frames, stride=1)
+    sub = score_stage1(state, frames, stride=4)
+    assert np.isfinite(full) and np.isfinite(sub)
+    assert abs(sub - full) < 1.0
+    assert score_stage1(state, frames) == pytest.approx(sub, abs=1e-9)   # the config's stride 4
+    assert score_stage1(state, frames, stride=4) == pytest.approx(sub, abs=1e-9)
 
 
 def _called_from(module):
