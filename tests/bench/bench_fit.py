@@ -259,6 +259,7 @@ def run_case(spec, args):
         info["build_s"] = time.perf_counter() - t
         cfg = FitConfig(output=os.path.join(workdir, "fit"), fit_width=width,
                         lidar_columns=args.lidar_columns, batch_rays=args.batch,
+                        lidar_batch_rays=args.batch,
                         max_hits=args.max_hits, samples=args.samples, sun=args.sun,
                         seed=args.seed, checkpoint_every=0)
         ctx = load_state(scene_path, cfg, log=lambda *a: None)
@@ -502,7 +503,7 @@ def main(argv=None):
     ap.add_argument("--runs", type=int, default=5, help="timed iterations per row")
     ap.add_argument("--ref-runs", type=int, default=3, help="timed iterations of the re-trace rows")
     ap.add_argument("--warmup", type=int, default=2, help="stage-1 warm-up iterations")
-    ap.add_argument("--batch", type=int, default=4096, help="stage-1 camera (and LiDAR) rays")
+    ap.add_argument("--batch", type=int, default=4096, help="stage-1 camera rays and as many LiDAR beams per step")
     ap.add_argument("--lidar-columns", type=int, default=512)
     ap.add_argument("--samples", type=int, default=16, help="sky samples M per Gaussian")
     ap.add_argument("--max-hits", type=int, default=24)
