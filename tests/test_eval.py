@@ -320,6 +320,22 @@ def test_nearest_training_frame_rules(tmp_path):
     assert nearest_training_frame(frames, 0, [0, 4, 5]) is None
 
 
+def test_image_baseline_skips_an_image_of_another_size(tmp_path):
+    """A training image whose size differs from the scored one is no
+    baseline (no score rather than a broadcast error)."""
+    from types import SimpleNamespace
+    from mi_invrgbl.eval.scoring import image_baseline
+    small, big = tmp_path / "small.png", tmp_path / "big.png"
+    write_png(str(small), np.full((4, 6, 3), 0.2, np.float32))
+    write_png(str(big), np.full((8, 6, 3), 0.2, np.float32))
+    frames = [SimpleNamespace(index=i, camera_to_world=cam_to_world(i), held_out=False, image=str(p))
+              for i, p in enumerate((small, small, big))]
+    observed = np.full((4, 6, 3), 0.25)
+    assert image_baseline(frames, 0, [0], observed)["baseline_frame"] == 1
+    assert image_baseline(frames, 1, [1], observed)["baseline_frame"] == 0
+    assert image_baseline(frames, 1, [0, 1], observed) == {}     # only frame 2 left: 8x6
+
+
 def test_lookup_keeps_every_training_point(tmp_path):
     """More points than any former subsample cap (2e6): all kept, still fast."""
     import time

@@ -301,6 +301,15 @@ def test_stage1_score_on_a_pixel_subset(scene_path, tmp_path):
     assert abs(sub - full) < 1.0
     assert score_stage1(state, frames) == pytest.approx(sub, abs=1e-9)   # the config's stride 4
     assert score_stage1(state, frames, stride=4) == pytest.approx(sub, abs=1e-9)
+    # A frame with every pixel masked is left out; nothing left scores NaN.
+    frame = frames[0]
+    valid = frame.camera.valid
+    frame.camera.valid = lambda: np.zeros_like(valid(), dtype=bool)
+    try:
+        assert np.isnan(score_stage1(state, [frame]))
+        assert score_stage1(state, frames) == pytest.approx(score_stage1(state, frames[1:]), abs=1e-9)
+    finally:
+        frame.camera.valid = valid
 
 
 def _called_from(module):

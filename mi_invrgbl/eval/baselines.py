@@ -130,6 +130,13 @@ def from_frames(frames, indices=None, **kwargs) -> NearestNeighbourIntensity:
     return NearestNeighbourIntensity(load_points(paths, max_points), **kwargs)
 
 
+def training_positions(frames, positions) -> list:
+    """Positions of the frames a baseline may draw on: neither held out nor
+    among ``positions`` (the frames being scored)."""
+    scored = set(positions)
+    return [j for j in range(len(frames)) if j not in scored and not frames[j].held_out]
+
+
 #: The nearest training image must look within this angle of the scored
 #: camera's optical axis (degrees); beyond it the two views barely overlap.
 IMAGE_BASELINE_MAX_ANGLE_DEG = 45.0
@@ -146,14 +153,13 @@ def nearest_training_frame(frames, k, positions):
     the frames of a slowly driving car it is strong (a slow drive changes
     little from frame to frame), so a fit that scores below it has not learnt
     the scene."""
-    held = set(positions) | {j for j in range(len(frames)) if frames[j].held_out}
     here = np.asarray(frames[k].camera_to_world, np.float64)
     axis = here[:3, 2] / max(np.linalg.norm(here[:3, 2]), 1e-12)
     cos_max = np.cos(np.radians(IMAGE_BASELINE_MAX_ANGLE_DEG))
     best, best_d = None, np.inf
-    for j in range(len(frames)):
+    for j in training_positions(frames, positions):
         rec = frames[j]
-        if j in held or rec.image is None or not os.path.isfile(rec.image):
+        if rec.image is None or not os.path.isfile(rec.image):
             continue
         other = np.asarray(rec.camera_to_world, np.float64)
         a = other[:3, 2] / max(np.linalg.norm(other[:3, 2]), 1e-12)

@@ -41,7 +41,7 @@ import numpy as np
 
 from ..errors import UserError
 from ..physics.lidar_response import return_scores
-from .baselines import NearestNeighbourIntensity, load_points
+from .baselines import NearestNeighbourIntensity, load_points, training_positions
 
 #: Voxel of the lookup's ray caster (metres) and its marching step.
 VOXEL = 0.2
@@ -216,9 +216,8 @@ class Lookup:
 
 def training_point_paths(frames, positions) -> list:
     """Points files of the frames that are neither held out nor scored."""
-    held = set(positions) | {k for k in range(len(frames)) if frames[k].held_out}
-    return [frames[k].points for k in range(len(frames))
-            if k not in held and frames[k].points is not None and os.path.isfile(frames[k].points)]
+    return [frames[k].points for k in training_positions(frames, positions)
+            if frames[k].points is not None and os.path.isfile(frames[k].points)]
 
 
 def build_lookup(frames, positions) -> Lookup | None:

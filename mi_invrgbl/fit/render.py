@@ -24,6 +24,13 @@ from ..physics.lidar_response import LidarResponse as Response  # noqa: F401 (th
 
 
 # ---------------------------------------------------------------- stage 1
+def gather_rays(rays, idx):
+    """The rays ``idx`` (``mi.UInt32``) of a ray bundle, ``maxt`` included."""
+    out = mi.Ray3f(dr.gather(mi.Point3f, rays.o, idx), dr.gather(mi.Vector3f, rays.d, idx))
+    out.maxt = dr.gather(mi.Float, rays.maxt, idx)
+    return out
+
+
 def camera_unlit(scene, rays, max_hits=32, min_transmittance=1e-2):
     """View-independent colour (the ``albedo`` field blended), alpha, depth."""
     nodes = hitlib.gaussian_nodes(scene)

@@ -28,17 +28,12 @@ from . import losses
 from ..physics.fields import BY_NAME, GEOMETRY
 from ..physics.gaussian_ply import GaussianCloud
 from .render import camera_unlit, lidar_beams
+from .render import gather_rays as _gather_rays
 from .steps import safe_step
 from .variables import GaussianVariable, Optimizer, SkySH
 
 #: Learning rate of the sky's SH coefficients (the Gaussians' are in the field table).
 SKY_LR = 1e-2
-
-
-def _gather_rays(rays, idx):
-    out = mi.Ray3f(dr.gather(mi.Point3f, rays.o, idx), dr.gather(mi.Vector3f, rays.d, idx))
-    out.maxt = dr.gather(mi.Float, rays.maxt, idx)
-    return out
 
 
 class Stage1:

@@ -1,7 +1,7 @@
 """Stage 1 alone for a fixed number of steps: validation PSNR and where the error sits.
 
     python tests/bench/stage1_steps.py SCENE.xml OUT.png [--steps 200] [--lidar-batch N]
-        [--camera-only] [--only-frame K] [--set FIELD=VALUE ...]
+        [--camera-only] [--only-frame K] [--set FIELD=VALUE ...] [--overwrite]
 
 Runs ``fit``'s own stage 1 (:class:`mi_invrgbl.fit.stage1.Stage1`, with its
 densification) on an imported scene for ``--steps`` iterations, without the
@@ -10,7 +10,8 @@ PSNR (every counted pixel) every 50 steps with the time the steps took. At
 the end it prints, per second validation frame, the PSNR, the share of the
 squared error on pixels no Gaussian covers (alpha < 0.5) and in each third
 of the image (top, middle, bottom), and writes OUT.png: observed image,
-stage-1 render and error (|error| x 2) stacked per frame.
+stage-1 render and error (|error| x 2) stacked per frame; an existing
+OUT.png is replaced only with ``--overwrite``.
 
 ``--camera-only`` drops the LiDAR terms; ``--only-frame K`` trains on frame
 K alone and scores it (how far one view gets with all the steps);
@@ -25,6 +26,7 @@ import variant_choice  # noqa: E402  (--variant NAME, default $MI_INVRGBL_VARIAN
 variant_choice.from_argv()
 
 import argparse  # noqa: E402
+import os  # noqa: E402
 import time  # noqa: E402
 
 import cv2  # noqa: E402
@@ -74,7 +76,10 @@ def main(argv=None):
     ap.add_argument("--only-frame", type=int, default=-1)
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE")
     ap.add_argument("--variant", default=None)
+    ap.add_argument("--overwrite", action="store_true", help="replace an existing OUT.png")
     args = ap.parse_args(argv)
+    if os.path.exists(args.out) and not args.overwrite:
+        raise SystemExit("%s exists: pass --overwrite to replace it" % args.out)
     cfg = config_from(args.set)
     state = load_state(args.scene, cfg, log=lambda *a: None)
     state.t_start = time.perf_counter()
