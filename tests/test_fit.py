@@ -55,6 +55,13 @@ def test_outputs_written(fitted):
     assert saved["peak_rss_mb"] > 0
     for key in ("sun", "sh", "response_init", "lidar_lobe", "samples", "sky_lookalikes"):
         assert key in saved["selection"]
+    # The free angle exponent against the prior's value, judged on the
+    # validation frame's returns (frame 2), and the better one kept.
+    init = saved["selection"]["response_init"]
+    choice = init["angle_exponent_choice"]
+    assert choice["scored_on"] == "validation"
+    assert np.isfinite(choice["free"]) and np.isfinite(choice["prior"])
+    assert (init["angle_exponent"] == 1.0) == (choice["prior"] <= choice["free"])
     chosen = saved["selection"]["samples"]
     assert set(chosen["by_samples"]) == {"4", "8", "16", "32"}
     assert all(np.isfinite(v["psnr"]) for v in chosen["by_samples"].values())
