@@ -481,6 +481,40 @@ def test_early_stop_and_budget_plan():
     assert position_lr_factor(0, 100) == 1.0 and abs(position_lr_factor(100, 100) - 0.01) < 1e-12
 
 
+def test_validation_stop_returns_to_the_best_state():
+    # A stage whose validation score peaks at iteration 2 and falls after:
+    # it stops after PATIENCE evaluations without a gain and goes back to
+    # the state kept at its best; where the last state scores best it stays.
+    import types
+    from mi_invrgbl.fit.budget import PATIENCE
+    from mi_invrgbl.fit.runner import ValidationStop
+    scores = {1: 20.0, 2: 22.0, 3: 21.0, 4: 20.5, 5: 20.2, 6: 20.0}
+    lines = []
+    state = types.SimpleNamespace(validation_frames=[object()], selection={}, log=lines.append)
+    plan = types.SimpleNamespace(eval_every=1)
+    now = {"it": 0}
+    stop = ValidationStop(state, plan, float("inf"), lambda: scores[now["it"]],
+                          keep=lambda: "state@%d" % now["it"])
+    reasons = []
+    for it in range(1, 7):
+        now["it"] = it
+        reasons.append(stop(it))
+        if reasons[-1]:
+            break
+    assert reasons[-1] and len(reasons) == 2 + PATIENCE
+    restored = []
+    assert stop.restore_best(restored.append, now["it"], "stage 1")
+    assert restored == ["state@2"] and "back to iteration 2" in lines[-1]
+    record = state.selection["budget"]["stage 1"]["best_validation"]
+    assert record["iteration"] == 2 and record["kept"] == "best" and record["last_score"] < 22.0
+    # Rising to the end: nothing to go back to.
+    stop = ValidationStop(state, plan, float("inf"), lambda: float(now["it"]), keep=lambda: now["it"])
+    for it in range(1, 4):
+        now["it"] = it
+        assert stop(it) is None
+    assert not stop.restore_best(restored.append, 3, "stage 2") and restored == ["state@2"]
+
+
 def test_batch_probe_keeps_larger_batches_only_where_they_are_cheap():
     import time
     from mi_invrgbl.fit.budget import probe_batch_scale, MIN_STEPS

@@ -153,8 +153,9 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
         state.selection.setdefault("budget", {})["stage 1"] = dict(
             plan.as_dict(), probe={str(k): round(v, 4) for k, v in probe.timings.items()})
         total = plan.iterations
-        run.stop = early_stop(state, plan, t + budget.share("stage 1"),
-                              lambda: score_stage1(state, state.validation_frames))
+        run.stop = ValidationStop(state, plan, t + budget.share("stage 1"),
+                                  lambda: score_stage1(state, state.validation_frames),
+                                  keep=s1.snapshot)
         position = BY_NAME["center"]
 
         def after_step(it, total):
@@ -169,7 +170,9 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
         s1.batch_camera *= k
         s1.batch_lidar *= k
     if total > start:
-        train(state, run, start, total)
+        last = train(state, run, start, total)
+        if isinstance(run.stop, ValidationStop):
+            run.stop.restore_best(s1.restore, last, "stage 1")
     if config.prune_sky_lookalikes:
         t = time.perf_counter()
         removed = s1.prune_sky_lookalikes()
@@ -209,11 +212,14 @@ def fit_materials(state: FitState, stage2, start, checkpoint, budget=None, fresh
                       % (seconds, budget.share("stage 2"), t - budget.t_start))
         state.selection.setdefault("budget", {})["stage 2"] = plan.as_dict()
         total = plan.iterations
-        run.stop = early_stop(state, plan, t + seconds, lambda: validation_score(
-            *score_stage2(stage2, state.validation_frames)))
+        run.stop = ValidationStop(state, plan, t + seconds, lambda: validation_score(
+            *score_stage2(stage2, state.validation_frames)), keep=stage2.snapshot)
         run.replan = replanner(state, plan, start, t + seconds)
     if total > start:
-        return train(state, run, start, total)
+        last = train(state, run, start, total)
+        if isinstance(run.stop, ValidationStop):
+            run.stop.restore_best(stage2.restore, last, "stage 2")
+        return last
     return max(start, total)
 
 
@@ -246,20 +252,58 @@ def validation_score(psnr, rmse):
     return psnr if np.isfinite(psnr) else -20.0 * np.log10(max(rmse, 1e-12))
 
 
-def early_stop(state: FitState, plan, deadline, score):
+class ValidationStop:
     """The stop test of a budgeted stage: its share of time is spent, or its
     validation ``score()`` (evaluated every ``plan.eval_every`` iterations)
-    has stopped improving."""
-    stopper = EarlyStop()
+    has stopped improving.
 
-    def stop(it):
-        if time.perf_counter() > deadline:
+    With ``keep`` (a function returning the stage's state), the state at the
+    best validation score so far is kept in ``best_state``: a stage stopped
+    by its validation score has run ``PATIENCE`` evaluations past its best,
+    and on the street its stage 1 had lost 0.46 dB held-out by then (25.08
+    dB at step 300, 24.62 at 516).
+    """
+
+    def __init__(self, state: FitState, plan, deadline, score, keep=None):
+        self.state, self.plan, self.deadline = state, plan, deadline
+        self.score, self.keep = score, keep
+        self.stopper = EarlyStop()
+        self.best_score = -np.inf
+        self.best_state = None
+        self.best_iteration = None
+
+    def __call__(self, it):
+        if time.perf_counter() > self.deadline:
             return "its share of the budget is spent"
-        if state.validation_frames and it % plan.eval_every == 0 and stopper.update(score()):
+        if not (self.state.validation_frames and it % self.plan.eval_every == 0):
+            return None
+        score = self.score()
+        if self.keep is not None and np.isfinite(score) and score > self.best_score:
+            self.best_score, self.best_state, self.best_iteration = score, self.keep(), it
+        if self.stopper.update(score):
             return "validation score %.3f no better than %.3f for %d evaluations" % (
-                stopper.history[-1], stopper.best, stopper.patience)
+                self.stopper.history[-1], self.stopper.best, self.stopper.patience)
         return None
-    return stop
+
+    def restore_best(self, restore, it, name):
+        """Go back to the kept state if it scores higher than the state at
+        iteration ``it`` (the stage's last); records the outcome under the
+        stage's budget entry and returns True where it went back."""
+        if self.best_state is None or self.best_iteration == it:
+            return False
+        final = self.score()
+        back = bool(np.isfinite(self.best_score) and not self.best_score <= final)
+        record = self.state.selection.setdefault("budget", {}).setdefault(name, {})
+        record["best_validation"] = {"iteration": self.best_iteration, "score": float(self.best_score),
+                                     "last_iteration": it, "last_score": float(final),
+                                     "kept": "best" if back else "last"}
+        if back:
+            restore(self.best_state)
+            self.state.log("[fit] %s: back to iteration %d (validation score %.3f, %.3f at its "
+                           "last iteration %d)" % (name, self.best_iteration, self.best_score,
+                                                   final, it))
+        self.best_state = None
+        return back
 
 
 def freeze(state: FitState, initialise):

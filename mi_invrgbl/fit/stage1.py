@@ -61,6 +61,22 @@ class Stage1:
     def pull(self):
         self.opt.pull()
 
+    def snapshot(self):
+        """The stage's state, Gaussians (their number changes with
+        densification) and sky, as host arrays to come back to."""
+        self.pull()
+        return (self.model.state_dict(),
+                np.array(dr.detach(self.ctx.params[self.ctx.sky_key]), np.float32))
+
+    def restore(self, snapshot):
+        """Return to a :meth:`snapshot`; Adam starts afresh from it."""
+        model, sky = snapshot
+        self.model.load_state_dict(model)
+        self.ctx.params[self.ctx.sky_key] = mi.Float(sky)
+        self.ctx.params.update()
+        self.grad_accum = {}
+        self.build_optimizer()
+
     def loss_terms(self, frame):
         cfg = self.ctx.config
         terms = {}

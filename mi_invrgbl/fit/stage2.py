@@ -194,6 +194,15 @@ class Stage2:
                         vals.get("response.angle_exponent", r.angle_exponent),
                         vals.get("response.beam_gains", r.beam_gains))
 
+    def snapshot(self):
+        """Copies of the optimised variables' values, to come back to."""
+        return {k: dr.copy(dr.detach(self.opt.adam[k])) for k in self.opt.variables}
+
+    def restore(self, snapshot):
+        """Return to a :meth:`snapshot`."""
+        for k, v in snapshot.items():
+            self.opt.adam[k] = v
+
     def commit(self):
         """Write the optimised variables back into the model, scene and response."""
         self.opt.commit()
