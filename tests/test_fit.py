@@ -650,6 +650,33 @@ def test_stage2_start_is_restored_exactly(scene_path, tmp_path):
     assert state.sun_visibility_learned == point.sun_visibility_learned
 
 
+def test_sun_trial_keeps_to_its_share_of_a_budget(scene_path, tmp_path, monkeypatch):
+    # Under a budget the trial of a narrowly rejected sun takes at most
+    # SUN_TRIAL_SHARE of stage 2's share, however many iterations it may run.
+    from mi_invrgbl.fit import runner
+    real_choose = runner.choose_lighting
+
+    def narrowly_rejected(state):
+        choice = real_choose(state)
+        choice.report["sun"].update(gain=0.03, use_sun=False,
+                                    direction=choice.report["sun"].get("direction", [0.3, 0.4, 0.866]))
+        choice.use_sun, choice.sun_direction, choice.sun_irradiance = False, None, 0.0
+        return choice
+
+    monkeypatch.setattr(runner, "choose_lighting", narrowly_rejected)
+    budget = 0.75
+    metrics = run_fit(scene_path, small_config(tmp_path, budget_minutes=budget, eval_every=5,
+                                               sun_trial_iterations=100000), log=lambda *a: None)
+    t = metrics["selection"]["sun"]["trial"]
+    from mi_invrgbl.fit.budget import SHARES
+    limit = runner.SUN_TRIAL_SHARE * SHARES["stage 2"] * 60 * budget
+    assert 0 < t["iterations"] < 100000
+    # Half the limit for the first candidate, as many steps for the second,
+    # plus starting the second (its shading start) and scoring both.
+    assert t["seconds"] < limit + 10, (t, limit)
+    assert metrics["iterations"]["stage 2"] >= t["iterations"]
+
+
 @pytest.mark.parametrize("trial, unscorable", [(4, False), (0, False), (4, True)])
 def test_sun_trial_decides_a_narrowly_rejected_sun(scene_path, tmp_path, monkeypatch, trial,
                                                    unscorable):
