@@ -513,6 +513,21 @@ def test_validation_stop_returns_to_the_best_state():
         now["it"] = it
         assert stop(it) is None
     assert not stop.restore_best(restored.append, 3, "stage 2") and restored == ["state@2"]
+    # A NaN score is never kept as the best, and the stop test's own last
+    # score is reused rather than scoring again.
+    calls = []
+    seq = {1: 20.0, 2: float("nan"), 3: 19.0}
+
+    def counted():
+        calls.append(now["it"])
+        return seq[now["it"]]
+    stop = ValidationStop(state, plan, float("inf"), counted, keep=lambda: now["it"])
+    for it in range(1, 4):
+        now["it"] = it
+        stop(it)
+    assert stop.best_iteration == 1 and stop.best_score == 20.0
+    assert stop.restore_best(restored.append, 3, "stage 1") and restored[-1] == 1
+    assert calls == [1, 2, 3]
 
 
 def test_batch_probe_keeps_larger_batches_only_where_they_are_cheap():

@@ -272,6 +272,7 @@ class ValidationStop:
         self.best_score = -np.inf
         self.best_state = None
         self.best_iteration = None
+        self.last = (None, np.nan)      # (iteration, score) of the last evaluation
 
     def __call__(self, it):
         if time.perf_counter() > self.deadline:
@@ -279,6 +280,7 @@ class ValidationStop:
         if not (self.state.validation_frames and it % self.plan.eval_every == 0):
             return None
         score = self.score()
+        self.last = (it, score)
         if self.keep is not None and np.isfinite(score) and score > self.best_score:
             self.best_score, self.best_state, self.best_iteration = score, self.keep(), it
         if self.stopper.update(score):
@@ -289,11 +291,14 @@ class ValidationStop:
     def restore_best(self, restore, it, name):
         """Go back to the kept state if it scores higher than the state at
         iteration ``it`` (the stage's last); records the outcome under the
-        stage's budget entry and returns True where it went back."""
+        stage's budget entry and returns True where it went back. As for
+        the early stop, a gain below ``MIN_GAIN`` is noise: the last state stays."""
         if self.best_state is None or self.best_iteration == it:
             return False
-        final = self.score()
-        back = bool(np.isfinite(self.best_score) and not self.best_score <= final)
+        # A stage stopped by its validation score was just scored at ``it``.
+        final = self.last[1] if self.last[0] == it else self.score()
+        back = bool(np.isfinite(self.best_score)
+                    and not self.best_score <= final + self.stopper.min_gain)
         record = self.state.selection.setdefault("budget", {}).setdefault(name, {})
         record["best_validation"] = {"iteration": self.best_iteration, "score": float(self.best_score),
                                      "last_iteration": it, "last_score": float(final),
