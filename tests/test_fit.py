@@ -63,7 +63,12 @@ def test_outputs_written(fitted):
     assert np.isfinite(choice["free"]) and np.isfinite(choice["prior"])
     assert (init["angle_exponent"] == 1.0) == (choice["prior"] <= choice["free"])
     chosen = saved["selection"]["samples"]
-    assert set(chosen["by_samples"]) == {"4", "8", "16", "32"}
+    # The fit's own M and the smaller one (this fit uses M=8).
+    assert set(chosen["by_samples"]) == {"4", "8"}
+    # The synthetic test street shows sky above the road: the sky mask
+    # marks it, and stage 1 starts from the sky fitted to those pixels.
+    mask = saved["selection"]["sky_mask"]
+    assert 0.0 < mask["share"] < 0.6 and "sky_start_order" in mask
     assert all(np.isfinite(v["psnr"]) for v in chosen["by_samples"].values())
     assert 'name="samples" value="%d"' % chosen["samples"] in (out / "scene.xml").read_text()
 

@@ -40,8 +40,8 @@ FLAGS = (
      "shadowing-masking term of the specular lobe: Smith's GGX term, or the paper's V-cavity "
      "(about twice the specular near grazing angles)", {"choices": ("smith", "vcavity")}),
     ("--render-samples", "render_samples",
-     "sky samples M written into the fitted scene.xml: 'auto' (the smallest of 4/8/16/32 "
-     "within 0.1 dB of the best validation PSNR) or a number", {}),
+     "sky samples M written into the fitted scene.xml: 'auto' (the smallest of 4/8/16/32, "
+     "up to --samples, within 0.1 dB of the best validation PSNR) or a number", {}),
     ("--weights", "weights",
      "loss weights, e.g. 'rgb2lidar=0,lidar2rgb=0' (paper defaults: lidar=rgb=1, nor=mat=0.1, "
      "rgb2lidar=lidar2rgb=0.05; plus anchor=1, stage 2's pull of the normals back to their "

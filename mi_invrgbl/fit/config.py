@@ -12,7 +12,7 @@ from .losses import LossWeights
 MODEL_FIELDS = ("batch_rays", "lidar_batch_rays", "fit_width", "lidar_columns", "max_hits", "min_transmittance",
                 "samples", "sky_patterns", "bounces", "shadowing", "weights", "bilateral_sigma", "slic_size", "lr_scale", "densify_every",
                 "densify_until", "prune_opacity", "densify_grad", "densify_fraction", "split_scale",
-                "max_gaussians", "stage1_range", "stage1_drop", "seed", "fit_response",
+                "max_gaussians", "stage1_range", "stage1_drop", "stage1_sky", "seed", "fit_response",
                 "sun_candidates", "sun_gaussians", "per_frame_visibility", "learn_sun_direction",
                 "prune_sky_lookalikes", "sun_visibility", "validation_every")
 
@@ -73,6 +73,9 @@ class FitConfig:
     max_gaussians: int = 800000
     stage1_range: float = 1.0
     stage1_drop: float = 0.1
+    #: Weight of stage 1's sky term: the blended opacity pushed to 0 (BCE)
+    #: on the pixels the sky mask (:mod:`.sky_mask`) marks; 0: no mask.
+    stage1_sky: float = 0.1
     eval_every: int = 50
     #: Stage 1 scores its progress (held-out log, validation early stop) on
     #: every n-th pixel that counts (:func:`.evaluate.score_stage1`).

@@ -19,6 +19,8 @@ from .model import GaussianModel
 from .observations import load_observations
 from .render import Response, dominant_hit
 from .response import MIN_COS, estimate_response, prior_for
+from .selection import fit_sh_orders, pad_sh
+from .sky_mask import frame_sky_mask
 from .state import FitState, SkyKeys
 
 
@@ -84,6 +86,7 @@ def load_state(scene_path, config: FitConfig, log=print) -> FitState:
         held_out_frames=held_out,
         intensity_scale=float(np.percentile(seen, 95)) if seen.size else 1.0,
         response=Response(mi.Float(2.0), mi.Float(1.0), dr.ones(mi.Float, max(n_beams, 1))))
+    attach_sky_masks(state)
     state.times["load"] = time.perf_counter() - t
     cam = train[0].camera
     log("[fit] %s: %d Gaussians in %d node(s) (%s), %d training + %d validation + %d held-out "
@@ -93,6 +96,44 @@ def load_state(scene_path, config: FitConfig, log=print) -> FitState:
            len(train), len(validation), len(held_out), cam.width if cam else 0,
            cam.height if cam else 0, state.times["load"]))
     return state
+
+
+def attach_sky_masks(state: FitState):
+    """The sky mask (:mod:`.sky_mask`) of every training and validation image;
+    its share of their pixels goes into the selection report."""
+    if state.config.stage1_sky <= 0:
+        return
+    total = sky = 0
+    for frame in state.train_frames + state.validation_frames:
+        if frame.camera is None:
+            continue
+        frame.camera.sky = frame_sky_mask(state.model, frame)
+        total += frame.camera.sky.size
+        sky += int(frame.camera.sky.sum())
+    if total:
+        state.selection["sky_mask"] = {"share": sky / total, "pixels": sky}
+
+
+def init_sky_from_mask(state: FitState):
+    """Start the SH sky from the sky-mask pixels of the training images (a
+    trimmed least-squares fit, :func:`.selection.fit_sh_orders`), so that
+    stage 1 sees the sky the images show from its first step; left as
+    imported when fewer than 64 pixels are marked."""
+    dirs, rgb = [], []
+    for f in state.train_frames:
+        if f.camera is None or f.camera.sky is None or not f.camera.sky.any():
+            continue
+        d = np.stack([np.array(f.camera.rays.d[k]) for k in range(3)], 1)
+        dirs.append(d[f.camera.sky])
+        rgb.append(f.camera.image.reshape(-1, 3)[f.camera.sky])
+    if sum(len(d) for d in dirs) < 64:
+        return
+    order_max = state.sky_emitter.order
+    chosen, _, coeffs = fit_sh_orders(np.concatenate(dirs), np.concatenate(rgb),
+                                      max_order=order_max, seed=state.config.seed)
+    state.params[state.sky_key] = mi.Float(pad_sh(coeffs[chosen], order_max).ravel())
+    state.params.update()
+    state.selection.setdefault("sky_mask", {})["sky_start_order"] = int(chosen)
 
 
 def sh_mask(order, emitter_order) -> mi.Float:

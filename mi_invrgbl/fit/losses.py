@@ -149,6 +149,14 @@ def rgb_loss(pred, target, mask=None):
     return _masked_mean(dr.square(diff), mask)
 
 
+def sky_loss(alpha, mask):
+    r"""Sky term :math:`-\overline{\log(1 - a)}` over the sky-mask pixels:
+    the camera ray's accumulated opacity ``alpha`` should be 0 where the
+    image shows the sky (:mod:`.sky_mask`), so that the SH sky, not
+    Gaussians, explains it. The ray-drop BCE with every target a miss."""
+    return ray_drop_loss(alpha, dr.zeros(mi.Bool, dr.width(alpha)), mask)
+
+
 def lidar_loss(pred, target, mask):
     r"""LiDAR fidelity :math:`\mathcal{L}_{lidar} = \Vert(\hat I - I)\cdot M_{lidar}\Vert_2^2` (paper Eq. 6).
 

@@ -81,6 +81,9 @@ class CameraObservation(Masked):
     rays: mi.Ray3f = None      # one per pixel, row-major
     priors: dict = field(default_factory=dict)  # kind -> (H, W, C) arrays
     excluded: np.ndarray | None = None          # (H, W) bool, True = left out
+    #: Flat bool, True where the image shows the sky (:mod:`.sky_mask`);
+    #: set by ``load_state`` on training and validation frames only.
+    sky: np.ndarray | None = None
 
     def _size(self) -> int:
         return self.width * self.height

@@ -54,7 +54,7 @@ class SpeedErrorLog:
     """Rows of (wall time, stage, iteration, losses, held-out errors) in a CSV."""
 
     FIELDS = ["wall_s", "stage", "iteration", "loss", "loss_rgb", "loss_lidar", "loss_range",
-              "loss_drop", "loss_rgb2lidar", "loss_lidar2rgb", "loss_prior", "loss_anchor",
+              "loss_drop", "loss_sky", "loss_rgb2lidar", "loss_lidar2rgb", "loss_prior", "loss_anchor",
               "heldout_psnr", "heldout_intensity_rmse", "peak_rss_mb"]
 
     def __init__(self, path, rows=None):

@@ -41,7 +41,7 @@ from .budget import (TIMED, Budget, EarlyStop, Replan, plan_stage, position_lr_f
 from .checkpoint import checkpoint_path, fingerprint, load_checkpoint, save_checkpoint
 from .config import FitConfig  # noqa: F401  (the fit's options, imported from here by callers)
 from .evaluate import score_stage1, score_stage2
-from .init import init_materials, load_state, sh_mask
+from .init import init_materials, init_sky_from_mask, load_state, sh_mask
 from .loop import Interrupted, StageRun, record_point, train
 from .model_selection import (SUN_TRIAL_MARGIN, LightingChoice, LobeChoice, choose_lidar_lobe,
                               choose_lighting, choose_render_samples, log_lighting,
@@ -125,6 +125,8 @@ def run_fit(scene_path, config: FitConfig, log=print):
 def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
     """Stage 1 from iteration ``start``, then the removal of sky look-alikes."""
     config = state.config
+    if start == 0:
+        init_sky_from_mask(state)
     s1 = Stage1(state)
     if opt_state:
         restore_optimizer(s1.opt.adam, opt_state)

@@ -91,6 +91,9 @@ class Stage1:
             rgb, alpha, _ = camera_unlit(self.ctx.scene, rays, cfg.max_hits, cfg.min_transmittance)
             target = dr.gather(mi.Color3f, self.ctx.image_array(frame), idx)
             terms["rgb"] = losses.rgb_loss(rgb, target)
+            if cam.sky is not None and cfg.stage1_sky > 0:
+                sky = mi.Bool(cam.sky[np.array(idx)])
+                terms["sky"] = losses.sky_loss(alpha, sky) * cfg.stage1_sky
         pool = frame.lidar.valid_index() if frame.lidar is not None else ()
         if len(pool) and (cfg.stage1_range > 0 or cfg.stage1_drop > 0):
             lid = frame.lidar
