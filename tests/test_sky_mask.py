@@ -74,6 +74,9 @@ def test_lidar_returns_and_moving_objects_are_not_sky():
     ret = d[5 * W + 40][None] * 20.0
     m = sky_mask(img, proj, returns=ret)
     assert not m[3:8, 38:43].any() and m[5, 30] and m[5, 50]
+    # Below it in its column (between a sparse scanner's beam rows) is not
+    # sky either; above it is.
+    assert not m[8:, 38:43].any() and m[:3, 38:43].all()
     # A bright truck 6 m ahead fills part of the sky region.
     ys, zs = np.meshgrid(np.linspace(-1.0, 1.0, 9), np.linspace(0.0, 2.0, 9))
     truck = np.stack([np.full(ys.size, 6.0), ys.ravel(), zs.ravel()], 1)
@@ -140,3 +143,19 @@ def test_sky_loss_is_finite_and_pushes_opacity_down():
     assert g[1] > 0 and g[3] == 0            # lower opacity lowers the loss; unmasked: no pull
     # No sky pixel in the batch: no loss.
     assert float(losses.sky_loss(mi.Float([0.7, 0.2]), mi.Bool([False, False]))[0]) == 0.0
+
+
+def test_no_sky_mask_leaves_the_frames_unmarked():
+    """``fit --no-sky-mask`` (or a zero weight): no mask, no sky term, no report."""
+    from mi_invrgbl.fit.init import attach_sky_masks
+    sensor, rays, _, _ = camera()
+    far = np.array([[50.0, -20.0, 1.0]])
+    f, model = frame(rays, sensor, far, np.zeros((0, 3)))
+    for sky_mask_on, weight in ((False, 0.1), (True, 0.0)):
+        state = SimpleNamespace(config=SimpleNamespace(sky_mask=sky_mask_on, stage1_sky=weight),
+                                train_frames=[f], validation_frames=[], model=model, selection={})
+        attach_sky_masks(state)
+        assert f.camera.sky is None and "sky_mask" not in state.selection
+    state.config.stage1_sky = 0.1
+    attach_sky_masks(state)
+    assert f.camera.sky is not None and state.selection["sky_mask"]["share"] > 0.3

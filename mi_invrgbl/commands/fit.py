@@ -69,6 +69,11 @@ FLAGS = (
     ("--learn-sun-direction", "learn_sun_direction",
      "also refine the selected sun direction in stage 2 (with learned sun visibility; it moves "
      "only the n.l shading, so albedo can absorb it)", {}),
+    ("--no-sky-mask", "sky_mask",
+     "do not mark the images' sky for stage 1 (default: bright, smooth pixels connected to the top "
+     "edge, with no LiDAR return or moving object there, are fitted as sky, not Gaussians; switch "
+     "it off for scenes without sky, e.g. indoors under a white ceiling above the LiDAR's top beam)",
+     {"invert": True}),
     ("--keep-sky-lookalikes", "prune_sky_lookalikes",
      "keep stage-1 Gaussians that have the sky's colour and only sky behind them (default: "
      "removed before stage 2; they cast shadows no roof casts)", {"invert": True}),

@@ -101,7 +101,7 @@ def load_state(scene_path, config: FitConfig, log=print) -> FitState:
 def attach_sky_masks(state: FitState):
     """The sky mask (:mod:`.sky_mask`) of every training and validation image;
     its share of their pixels goes into the selection report."""
-    if state.config.stage1_sky <= 0:
+    if not state.config.sky_mask or state.config.stage1_sky <= 0:
         return
     total = sky = 0
     for frame in state.train_frames + state.validation_frames:

@@ -18,7 +18,7 @@ A pixel is *sky* here when all of these hold (on the fit's image grid):
 * the image is smooth there (Sobel gradient of the sRGB luminance below
   :data:`MAX_GRADIENT`);
 * no LiDAR return of the frame projects within :data:`RETURN_MARGIN`
-  pixels, and it lies outside the projected outline of every moving
+  pixels or above it in its column, and it lies outside the projected outline of every moving
   object, extended :data:`OBJECT_HEADROOM` up where the top beam cut it
   (a white truck beside the car is bright and smooth too, and above the
   top beam the LiDAR does not see it);
@@ -45,7 +45,8 @@ MIN_BRIGHTNESS = 0.5
 MAX_GRADIENT = 0.06
 #: How much redder than blue a sky pixel may be (sunset skies are not handled).
 MAX_WARMTH = 0.05
-#: Pixels within this distance of a projected LiDAR return are not sky.
+#: Pixels within this distance (columns and rows) of a projected LiDAR
+#: return, or below it, are not sky.
 RETURN_MARGIN = 2
 #: A moving object whose highest Gaussian is within :data:`CUT_DEG` of the
 #: scan's highest return (its top was cut by the top beam, not measured) has
@@ -108,9 +109,18 @@ def sky_mask(image, projection: PinholeProjection, returns=None, objects=()):
     if returns is not None and len(returns):
         col, row = projection(returns)
         ok = (col >= 0) & (col < w) & (row >= 0) & (row < h)
-        blocked[row[ok].astype(int), col[ok].astype(int)] = 1
-        k = 2 * RETURN_MARGIN + 1
-        blocked = cv2.dilate(blocked, np.ones((k, k), np.uint8))
+        # Sky lies above everything the scan measured in its column: a
+        # column's pixels from its highest return down are not sky (also
+        # between the rows of a sparse scanner's beams, which a margin
+        # around each return would let through).
+        top = np.full(w, float(h))
+        np.minimum.at(top, col[ok].astype(int), row[ok])
+        r = RETURN_MARGIN
+        spread = top.copy()             # the highest return within r columns
+        for k in range(1, r + 1):
+            spread[k:] = np.minimum(spread[k:], top[:-k])
+            spread[:-k] = np.minimum(spread[:-k], top[k:])
+        blocked[np.arange(h)[:, None] >= np.floor(spread)[None, :] - r] = 1
     for pts in objects:
         col, row = projection(pts)
         if col.size < 3:
