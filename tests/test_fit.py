@@ -749,3 +749,24 @@ def test_sun_trial_decides_a_narrowly_rejected_sun(scene_path, tmp_path, monkeyp
     lighting = metrics.get("lighting") or {}
     if "sun_used" in lighting:
         assert lighting["sun_used"] == sun["use_sun"]
+
+
+def test_stage2_start_chooses_among_sun_directions(scene_path, tmp_path, monkeypatch):
+    """Where the sun test keeps other directions, stage 2's start is made
+    under each and scored on the validation frames: offered a direction far
+    from the true one first, the true one's start wins."""
+    from mi_invrgbl.fit import selection
+    from fit_scene import SUN
+    true = np.array(SUN) / np.linalg.norm(SUN)
+    wrong = np.array([0.6, -0.5, 0.62]) / np.linalg.norm([0.6, -0.5, 0.62])
+    monkeypatch.setattr(selection, "alternative_directions",
+                        lambda *a: [wrong.tolist(), true.tolist()])
+    metrics = run_fit(scene_path, small_config(tmp_path, sun="on", render_samples="8",
+                                               stage1_iterations=30, stage2_iterations=4),
+                      log=lambda *a: None)
+    start = metrics["selection"]["shading_init"]["sun_direction_start"]
+    assert start["scored_on"] == "validation" and len(start["candidates"]) == 2
+    scores = [c["psnr"] for c in start["candidates"]]
+    assert all(np.isfinite(scores)) and scores[1] > scores[0]
+    assert np.allclose(start["chosen"], true, atol=1e-5)
+    assert np.allclose(metrics["selection"]["sun"]["direction"], true, atol=1e-5)

@@ -150,3 +150,27 @@ def test_render_samples_choice_keeps_to_a_budget(monkeypatch):
     scored.clear()
     out = ms.choose_render_samples(ctx, None, frozen, deadline=time.perf_counter() + 1.0)
     assert scored == [32, 4, 8] and out["skipped_for_budget"] == [16]
+
+
+def test_alternative_sun_directions_are_strong_and_far_apart():
+    from mi_invrgbl.fit.selection import (ALTERNATIVE_GAIN, ALTERNATIVE_SEPARATION,
+                                          alternative_directions)
+    best = np.array([0.0, 0.0, 1.0])
+    dirs = np.array([[0.0, 0.0, 1.0],                      # the best itself
+                     [np.sin(0.2), 0.0, np.cos(0.2)],      # 11 deg from it: too close
+                     [1.0, 0.0, 1.0],                      # 45 deg, strong
+                     [1.0, 0.1, 1.0],                      # 45 deg but 4 deg from the last
+                     [0.0, 1.0, 0.5],                      # far, strong
+                     [-1.0, 0.0, 0.3]])                    # far, weak
+    gains = np.array([0.10, 0.099, 0.09, 0.095, 0.08, 0.05])
+    out = alternative_directions(best, 0.10, dirs, gains)
+    assert len(out) == 3 and np.allclose(out[0], best)
+    # Strongest first among those far enough: [1, 0.1, 1] (0.095) beats [1, 0, 1].
+    assert np.allclose(out[1], np.array([1.0, 0.1, 1.0]) / np.linalg.norm([1.0, 0.1, 1.0]))
+    assert np.allclose(out[2], np.array([0.0, 1.0, 0.5]) / np.linalg.norm([0.0, 1.0, 0.5]))
+    for a in out:
+        for b in out:
+            if a is not b:
+                assert np.degrees(np.arccos(np.clip(np.dot(a, b), -1, 1))) >= ALTERNATIVE_SEPARATION
+    # Nothing near the best's gain: the best alone.
+    assert len(alternative_directions(best, 0.10, dirs, gains * (ALTERNATIVE_GAIN - 0.1))) == 1

@@ -121,6 +121,34 @@ def score_candidates(regression, features):
     return np.array([regression.fit(features[:, k]) for k in range(features.shape[1])])
 
 
+#: Other sun directions stage 2's start is tried under (:func:`alternative_directions`).
+ALTERNATIVES = 2
+#: ... those explaining at least this share of the best direction's gain,
+ALTERNATIVE_GAIN = 0.7
+#: ... at least this far from the best and from each other (degrees).
+ALTERNATIVE_SEPARATION = 25.0
+
+
+def alternative_directions(best_dir, best_gain, directions, gains):
+    """The best direction and up to :data:`ALTERNATIVES` others among the
+    coarse candidates that explain nearly as much of the shading (gain at
+    least :data:`ALTERNATIVE_GAIN` of the best) and lie at least
+    :data:`ALTERNATIVE_SEPARATION` degrees from every direction already
+    kept, best first. The shading test cannot always tell such directions
+    apart (one KITTI stage 1 ranked a direction 45 degrees from another
+    run's first); stage 2's start scores them on the validation frames."""
+    cos_sep = np.cos(np.radians(ALTERNATIVE_SEPARATION))
+    kept = [np.asarray(best_dir, np.float64) / np.linalg.norm(best_dir)]
+    for k in np.argsort(-np.asarray(gains)):
+        if len(kept) > ALTERNATIVES or not gains[k] >= ALTERNATIVE_GAIN * best_gain:
+            break
+        d = np.asarray(directions[k], np.float64)
+        d = d / np.linalg.norm(d)
+        if all(float(d @ e) < cos_sep for e in kept):
+            kept.append(d)
+    return [d.tolist() for d in kept]
+
+
 def refine_candidates(direction, spread_deg=10.0, count=12):
     """Directions on a cone around ``direction`` (and itself), above the horizon."""
     d = np.asarray(direction, np.float64)
@@ -223,6 +251,7 @@ def select_sun(scene, centers, normals, luminance, weights=None, candidates=48,
                and gain >= min_contrast * max(median_gain, 1e-6) and rho >= min_ratio
                and cv_gain >= min_cv_gain)
     return {"direction": np.asarray(best_dir, float).tolist(), "gain": gain,
+            "alternatives": alternative_directions(best_dir, gain, dirs, scores[:, 0]),
             "cv_gain": cv_gain,
             "gain_over_sky": float(gain_over_sky), "gain_sky_only": float(gain_sky),
             "median_gain": median_gain,
