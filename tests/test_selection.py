@@ -162,7 +162,7 @@ def test_alternative_sun_directions_are_strong_and_far_apart():
                      [1.0, 0.1, 1.0],                      # 45 deg but 4 deg from the last
                      [0.0, 1.0, 0.5],                      # far, strong
                      [-1.0, 0.0, 0.3]])                    # far, weak
-    gains = np.array([0.10, 0.099, 0.09, 0.095, 0.08, 0.05])
+    gains = np.array([0.10, 0.099, 0.09, 0.095, 0.08, 0.04])
     out = alternative_directions(best, 0.10, dirs, gains)
     assert len(out) == 3 and np.allclose(out[0], best)
     # Strongest first among those far enough: [1, 0.1, 1] (0.095) beats [1, 0, 1].
