@@ -764,9 +764,33 @@ def test_stage2_start_chooses_among_sun_directions(scene_path, tmp_path, monkeyp
     metrics = run_fit(scene_path, small_config(tmp_path, sun="on", render_samples="8",
                                                stage1_iterations=30, stage2_iterations=4),
                       log=lambda *a: None)
-    start = metrics["selection"]["shading_init"]["sun_direction_start"]
-    assert start["scored_on"] == "validation" and len(start["candidates"]) == 2
-    scores = [c["psnr"] for c in start["candidates"]]
-    assert all(np.isfinite(scores)) and scores[1] > scores[0]
-    assert np.allclose(start["chosen"], true, atol=1e-5)
+    start = metrics["selection"]["shading_init"]["start_candidates"]
+    cands = start["candidates"]
+    assert start["scored_on"] == "validation" and len(cands) >= 2
+    assert all(np.isfinite(c["psnr"]) for c in cands)
+    on_true = [c["psnr"] for c in cands if np.allclose(c["sun_direction"], true, atol=1e-5)]
+    on_wrong = [c["psnr"] for c in cands if np.allclose(c["sun_direction"], wrong, atol=1e-5)]
+    assert on_true and on_wrong and max(on_true) > max(on_wrong)
+    assert np.allclose(cands[start["chosen"]]["sun_direction"], true, atol=1e-5)
     assert np.allclose(metrics["selection"]["sun"]["direction"], true, atol=1e-5)
+
+
+def test_stage2_start_scores_the_facings_irradiance_against_the_selection(scene_path, tmp_path,
+                                                                         monkeypatch):
+    """Where the facings' sun irradiance disagrees with the lighting
+    selection's level, the start is made with each and the validation
+    frames choose; the chosen start's irradiance is the one in the scene."""
+    from mi_invrgbl.fit import shading_init
+    monkeypatch.setattr(shading_init, "MAX_EXCESS", 1e-3)     # every estimate "disagrees"
+    monkeypatch.setattr(shading_init, "MAX_DISAGREEMENT", 1e-3)
+    metrics = run_fit(scene_path, small_config(tmp_path, sun="on", render_samples="8",
+                                               stage1_iterations=30, stage2_iterations=4),
+                      log=lambda *a: None)
+    si = metrics["selection"]["shading_init"]
+    cands = si["start_candidates"]["candidates"]
+    sources = [c["sun_irradiance_from"] for c in cands]
+    assert any(s.startswith("selection (facings gave") for s in sources) and "facings" in sources
+    assert all(np.isfinite(c["psnr"]) for c in cands)
+    best = int(np.argmax([c["psnr"] for c in cands]))
+    assert si["start_candidates"]["chosen"] == best
+    assert si["sun_irradiance_from"] == sources[best]

@@ -352,14 +352,16 @@ def start_stage2(state: FitState, frozen, initialise=True):
                       % (np.round(si["sun_irradiance"], 3).tolist(),
                          "them" if source == "facings" else "the lighting " + source,
                          si["facings"], 100 * si["shadowed"]))
-        if "sun_direction_start" in si:
-            sd = si["sun_direction_start"]
-            state.log("[fit] sun direction at stage 2's start: %s (validation PSNR of the start "
-                      "under each direction the sun test kept: %s)" % (
-                          np.round(sd["chosen"], 2).tolist(), ", ".join(
-                              "%s %s dB" % (np.round(c["direction"], 2).tolist(),
-                                            "-" if c["psnr"] is None else "%.2f" % c["psnr"])
-                              for c in sd["candidates"])))
+        if "start_candidates" in si:
+            sc = si["start_candidates"]
+            state.log("[fit] stage 2's start, validation PSNR under each sun the lighting kept: %s; "
+                      "the %s" % (", ".join(
+                          "%s irradiance from %s %s dB" % (
+                              np.round(c["sun_direction"], 2).tolist(), c["sun_irradiance_from"],
+                              "-" if c["psnr"] is None else "%.2f" % c["psnr"])
+                          for c in sc["candidates"]), ("first", "second", "third", "fourth", "fifth",
+                                                       "sixth", "seventh", "eighth")[sc["chosen"]]
+                          if sc["chosen"] < 8 else "#%d" % (sc["chosen"] + 1)))
         if "light_scale_scores" in si:
             state.log("[fit] light level at stage 2's start: %.2fx the fitted sky and sun (under "
                       "the fitted light the albedo reproducing stage 1 would clip at 1; starting "
