@@ -202,3 +202,12 @@ def test_light_is_raised_until_the_albedo_stops_clipping():
     assert np.isfinite(light_scale(bad, dark, s["seen"]))
     assert light_scale(s["colour"], dark, np.zeros_like(s["seen"])) == 1.0
     assert light_scale(s["colour"], np.zeros_like(dark), s["seen"]) <= 100.0
+
+
+def test_an_overruled_facing_estimate_is_recognised():
+    from mi_invrgbl.fit.shading_init import facings_overruled, reconcile_sun_irradiance
+    _, agree = reconcile_sun_irradiance(np.array([2.0, 2.0, 2.0]), 1.5)
+    _, disagree = reconcile_sun_irradiance(np.array([30.0, 30.0, 30.0]), 1.5)
+    _, none = reconcile_sun_irradiance(None, 1.5)
+    assert not facings_overruled(agree) and facings_overruled(disagree)
+    assert not facings_overruled(none)      # no facing estimate: nothing to try instead

@@ -131,6 +131,12 @@ def reconcile_sun_irradiance(estimate, selection_level):
     return np.maximum(np.asarray(estimate, np.float64), 1e-3), "facings"
 
 
+def facings_overruled(source):
+    """Whether :func:`reconcile_sun_irradiance` (its ``source``) replaced the
+    facings' estimate with the selection's level."""
+    return str(source).startswith("selection (facings gave")
+
+
 def visibility_from_lidar_albedo(colour, sky_term, sun_irradiance, visibility, cos, seen,
                                  lidar_albedo, shadow=SHADOW, lit=LIT):
     """Correct the traced sun visibility where the colour clearly says otherwise.
