@@ -355,13 +355,11 @@ def start_stage2(state: FitState, frozen, initialise=True):
         if "start_candidates" in si:
             sc = si["start_candidates"]
             state.log("[fit] stage 2's start, validation PSNR under each sun the lighting kept: %s; "
-                      "the %s" % (", ".join(
-                          "%s irradiance from %s %s dB" % (
-                              np.round(c["sun_direction"], 2).tolist(), c["sun_irradiance_from"],
+                      "kept #%d" % (", ".join(
+                          "#%d %s irradiance from %s %s dB" % (
+                              i + 1, np.round(c["sun_direction"], 2).tolist(), c["sun_irradiance_from"],
                               "-" if c["psnr"] is None else "%.2f" % c["psnr"])
-                          for c in sc["candidates"]), ("first", "second", "third", "fourth", "fifth",
-                                                       "sixth", "seventh", "eighth")[sc["chosen"]]
-                          if sc["chosen"] < 8 else "#%d" % (sc["chosen"] + 1)))
+                          for i, c in enumerate(sc["candidates"])), sc["chosen"] + 1))
         if "light_scale_scores" in si:
             state.log("[fit] light level at stage 2's start: %.2fx the fitted sky and sun (under "
                       "the fitted light the albedo reproducing stage 1 would clip at 1; starting "

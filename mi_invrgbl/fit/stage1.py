@@ -86,14 +86,14 @@ class Stage1:
         if len(pool) and cfg.weights.rgb > 0:
             cam = frame.camera
             n = len(pool)
-            idx = mi.UInt32(pool[self.rng.integers(0, n, min(self.batch_camera, n))])
+            sel = pool[self.rng.integers(0, n, min(self.batch_camera, n))]
+            idx = mi.UInt32(sel)
             rays = _gather_rays(cam.rays, idx)
             rgb, alpha, _ = camera_unlit(self.ctx.scene, rays, cfg.max_hits, cfg.min_transmittance)
             target = dr.gather(mi.Color3f, self.ctx.image_array(frame), idx)
             terms["rgb"] = losses.rgb_loss(rgb, target)
             if cam.sky is not None and cfg.stage1_sky > 0:
-                sky = mi.Bool(cam.sky[np.array(idx)])
-                terms["sky"] = losses.sky_loss(alpha, sky) * cfg.stage1_sky
+                terms["sky"] = losses.sky_loss(alpha, mi.Bool(cam.sky[sel])) * cfg.stage1_sky
         pool = frame.lidar.valid_index() if frame.lidar is not None else ()
         if len(pool) and (cfg.stage1_range > 0 or cfg.stage1_drop > 0):
             lid = frame.lidar
