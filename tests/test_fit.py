@@ -794,3 +794,53 @@ def test_stage2_start_scores_the_facings_irradiance_against_the_selection(scene_
     best = int(np.argmax([c["psnr"] for c in cands]))
     assert si["start_candidates"]["chosen"] == best
     assert si["sun_irradiance_from"] == sources[best]
+
+
+def test_stage2_start_leaves_the_specular_light_out_of_the_albedo(scene_path, tmp_path,
+                                                                  monkeypatch):
+    """Stage 1's colour is diffuse plus specular light. The start's albedo
+    takes the specular part (:meth:`Stage2.mean_specular`) out and is solved
+    with the render's own bounce light, so the start renders stage 1's
+    picture: its pixels are neither brighter nor darker on average, and
+    closer than with an albedo that takes the whole colour as diffuse light."""
+    from mi_invrgbl.fit import runner
+    from mi_invrgbl.fit.init import load_state
+    from mi_invrgbl.fit.render import VirtualNode, frozen_gaussian_hits
+    from mi_invrgbl.fit.stage2 import Stage2
+    from mi_invrgbl.physics import hits as hitlib
+
+    def start(tag):
+        state = load_state(scene_path, small_config(tmp_path / tag, sun="on"), log=lambda *a: None)
+        runner.apply_lighting(state, runner.choose_lighting(state))
+        stage2, frozen = runner.freeze(state, initialise=True)
+        si = state.selection["shading_init"]
+        diffs = []
+        vals = stage2.values()
+        for f in state.train_frames:
+            shaded = stage2.render_frame(f, vals, lidar=False)["camera"]
+            # Stage 1's picture on the same frozen hits: the colour blended alone.
+            nodes = frozen.nodes(f, vals)
+            cn = [VirtualNode(n.id, n.data, n.opacities,
+                              {"albedo": state.model.nodes[name].values["colour"]}, n.count)
+                  for n, name in zip(nodes, state.model.nodes)]
+            fh = frozen.camera[f.index]
+            g = frozen_gaussian_hits(nodes, f.camera.rays, fh)
+            col = mi.Color3f(hitlib.gather_attribute(cn, "albedo", g.node_ids, g.prims, g.active))
+            c1 = hitlib.composite_front_to_back(g, fh.weight, fh.t_after, {"rgb": col},
+                                                {"rgb": mi.Color3f(0.0)})["rgb"]
+            a = np.array(shaded["alpha"]) > 0.99
+            d = np.array(shaded["rgb"]).T - np.array(c1).T
+            diffs.append(d[a])
+        d = np.concatenate(diffs)
+        return si, float(d.mean()), float(np.sqrt(np.mean(d ** 2)))
+
+    si, bias, rmse = start("with")
+    monkeypatch.setattr(Stage2, "mean_specular",
+                        lambda self, names, frames=8: np.zeros((sum(
+                            self.ctx.model.nodes[n].count for n in names), 3)))
+    _, bias0, rmse0 = start("without")
+    print(si["specular_share"], bias, rmse, bias0, rmse0)
+    assert 0.0 < si["specular_share"] < 1.0
+    assert bias0 > 0.004            # the specular light on top: too bright
+    assert abs(bias) < 0.003
+    assert rmse < 0.7 * rmse0

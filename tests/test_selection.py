@@ -5,6 +5,8 @@ sun; the selection must find the sun near its true direction in the first and
 use none in the second. Scores are printed so a failure shows by how much.
 """
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -41,6 +43,39 @@ def test_no_sun_in_an_overcast_scene(tmp_path):
     ctx, chosen = _select(tmp_path, sun=False)
     assert not chosen["use_sun"], chosen
     assert not ctx.use_sun
+
+
+def test_sky_start_is_the_sky_that_renders_stage_1_best(tmp_path):
+    # Stage 1's colours were fitted in front of stage 1's sky; the sky stage
+    # 2 starts from is the candidate under which the validation images come
+    # out best, and the scene's sky is left as it was.
+    import drjit as dr
+    import mitsuba as mi
+    from mi_invrgbl.fit.model_selection import choose_sky_start
+    path = build(str(tmp_path), n_frames=5, width=96, height=32, columns=128, sun=False)
+    ctx = load_state(path, FitConfig(output=str(tmp_path / "fit"), fit_width=96, lidar_columns=128,
+                                     sun_candidates=32, seed=0), lambda *a: None)
+    choice = choose_lighting(ctx)
+    good = np.asarray(choice.sh_init, np.float32)
+    wrong = good * 0.25
+
+    def pick(stage1_sky, sky_pixels_fit):
+        ctx.params[ctx.sky_key] = mi.Float(stage1_sky.ravel())
+        ctx.params.update()
+        c = choose_sky_start(ctx, dataclasses.replace(choice, sh_init=sky_pixels_fit))
+        after = np.array(dr.detach(ctx.params[ctx.sky_key]), np.float32)
+        assert np.allclose(after, stage1_sky.ravel())        # the scene's sky untouched
+        print(c.report["sh"]["start"])
+        return c
+
+    c = pick(wrong, good)
+    assert c.report["sh"]["start"]["chosen"] == "sky pixels"
+    assert np.allclose(c.sh_init, good)
+    c = pick(good, wrong)
+    assert c.report["sh"]["start"]["chosen"].startswith("stage 1")
+    assert np.allclose(np.asarray(c.sh_init)[:1], good[:1], atol=1e-6)
+    scores = c.report["sh"]["start"]["psnr"]
+    assert scores["sky pixels"] < scores[c.report["sh"]["start"]["chosen"]] - 0.5
 
 
 def test_patch_regression_recovers_ratio_and_ignores_albedo():

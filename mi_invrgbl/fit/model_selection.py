@@ -9,16 +9,19 @@ on the held-out frames, which only ``eval`` and the progress log score.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 import drjit as dr
+import mitsuba as mi
 
 from ..physics import hits as hitlib
 from ..physics.colour import LUMINANCE
 from ..physics.lighting import LightingCache
-from .evaluate import score_stage2
+from ..physics.sh import num_coeffs
+from .evaluate import score_stage1, score_stage2
 from .losses import LossWeights
 from .selection import fit_sh_orders, pad_sh, select_sun
 from .state import FitState
@@ -181,6 +184,55 @@ def choose_lighting(ctx: FitState) -> LightingChoice:
                           sun_irradiance=_sun_placeholder(s) if use_sun else 0.0)
 
 
+def choose_sky_start(ctx: FitState, choice: LightingChoice) -> LightingChoice:
+    """The sky stage 2 starts from: the SH fit of the sky-mask pixels at the
+    chosen order (``choice.sh_init``), or stage 1's own sky (the scene's sky
+    now) cut to that order or kept whole, whichever renders the stage-1
+    colours closest to the validation images.
+
+    Stage 1 fits the Gaussians' colours and opacities against its own sky:
+    where Gaussians are partly transparent (foliage, thin poles, edges) the
+    image is a blend of their colour and that sky. Swapping in another sky
+    moves every such pixel. On the KITTI excerpt the swap cost 0.9 dB of
+    validation PSNR after an 8-minute stage 1, before any shading. Orders
+    above the chosen one (stage 1 optimises all of them) stay only when
+    they score better, and then the chosen order rises with them.
+
+    Restores the scene's sky; returns ``choice`` with the picked start (its
+    ``report["sh"]["start"]`` records every candidate's score)."""
+    frames = [f for f in ctx.selection_frames if f.camera is not None]
+    if not frames:
+        return choice
+    emitter_order = ctx.sky_emitter.order
+    stage1 = np.array(dr.detach(ctx.params[ctx.sky_key]), np.float32).reshape(-1, 3)
+    cut = stage1.copy()
+    cut[num_coeffs(choice.sh_order):] = 0.0
+    candidates = [("sky pixels", choice.sh_order, np.asarray(choice.sh_init, np.float32)),
+                  ("stage 1, order %d" % choice.sh_order, choice.sh_order, cut)]
+    if choice.sh_order < emitter_order and ctx.config.sh_order == "auto":
+        candidates.append(("stage 1, order %d" % emitter_order, emitter_order, stage1))
+    ctx.model.push(frames[0].poses, stage=1)
+    scores = []
+    for _, _, coeffs in candidates:
+        ctx.params[ctx.sky_key] = mi.Float(coeffs.ravel())
+        ctx.params.update()
+        scores.append(score_stage1(ctx, frames))
+    ctx.params[ctx.sky_key] = mi.Float(stage1.ravel())
+    ctx.params.update()
+    ok = [i for i, sc in enumerate(scores) if np.isfinite(sc)]
+    best = max(ok, key=lambda i: scores[i]) if ok else 0
+    name, order, coeffs = candidates[best]
+    report = copy.deepcopy(choice.report)
+    sh = report.setdefault("sh", {})
+    sh["start"] = {"chosen": name, "scored_on": "validation",
+                   "psnr": {n: (sc if np.isfinite(sc) else None)
+                            for (n, _, _), sc in zip(candidates, scores)}}
+    if order != choice.sh_order:
+        sh["order"], sh["raised_by_start"] = order, True
+    return dataclasses.replace(choice, report=report, sh_order=order, sh_init=pad_sh(
+        coeffs.reshape(-1, 3), emitter_order))
+
+
 def log_lighting(ctx: FitState, choice: LightingChoice, seconds):
     s = choice.report["sun"]
     ctx.log("[fit] lighting: sun %s (best direction %s explains %.1f %% of within-surface "
@@ -193,6 +245,11 @@ def log_lighting(ctx: FitState, choice: LightingChoice, seconds):
                                      100 * s.get("gain_over_sky", float("nan")),
                                      100 * s.get("median_gain", float("nan")),
                                      s.get("sun_to_sky", float("nan")), choice.sh_order, seconds))
+    start = choice.report.get("sh", {}).get("start")
+    if start:
+        ctx.log("[fit] sky start: %s (validation PSNR of stage 1 under each: %s)" % (
+            start["chosen"], ", ".join("%s %s dB" % (k, "-" if v is None else "%.2f" % v)
+                                       for k, v in start["psnr"].items())))
 
 
 def choose_lidar_lobe(ctx: FitState, stage2, frozen) -> LobeChoice:

@@ -44,7 +44,7 @@ from .evaluate import score_stage1, score_stage2
 from .init import init_materials, init_sky_from_mask, load_state, sh_mask
 from .loop import Interrupted, StageRun, record_point, train
 from .model_selection import (SUN_TRIAL_MARGIN, LightingChoice, LobeChoice, choose_lidar_lobe,
-                              choose_lighting, choose_render_samples, log_lighting,
+                              choose_lighting, choose_render_samples, choose_sky_start, log_lighting,
                               sun_alternative)
 from .progress import SpeedErrorLog
 from .stage1 import Stage1
@@ -79,7 +79,7 @@ def run_fit(scene_path, config: FitConfig, log=print):
             fit_geometry(state, start, opt_state, checkpoint, budget)
             start, opt_state = 0, None
             t = time.perf_counter()
-            lighting = choose_lighting(state)
+            lighting = choose_sky_start(state, choose_lighting(state))
             apply_lighting(state, lighting)
             state.times["selection"] = time.perf_counter() - t
             log_lighting(state, lighting, state.times["selection"])
