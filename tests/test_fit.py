@@ -483,7 +483,20 @@ def test_early_stop_and_budget_plan():
     assert plan_stage("stage 2", 60.0, 0.01, batched=False).iterations == 6000
     small = plan_stage("stage 1", 10.0, 0.1)
     assert small.batch_scale == 1 and small.iterations == 100 <= MAX_ITERATIONS
-    assert position_lr_factor(0, 100) == 1.0 and abs(position_lr_factor(100, 100) - 0.01) < 1e-12
+    assert position_lr_factor(0.0) == 1.0 and abs(position_lr_factor(1.0) - 0.01) < 1e-12
+
+
+def test_stage_progress_counts_the_time_share_of_a_slow_stage():
+    # A budgeted stage whose steps ran slower than planned has spent its
+    # time before its steps: its schedules must have ended all the same.
+    from mi_invrgbl.fit.budget import position_lr_factor, stage_progress
+    assert stage_progress(50, 100) == 0.5
+    assert stage_progress(50, 100, elapsed=90.0, seconds=100.0) == 0.9
+    assert stage_progress(90, 100, elapsed=10.0, seconds=100.0) == 0.9
+    assert stage_progress(500, 100, elapsed=500.0, seconds=100.0) == 1.0
+    assert stage_progress(0, 0) == 0.0 and stage_progress(3, 10, 1.0, 0.0) == 0.3
+    slow = position_lr_factor(stage_progress(560, 1000, elapsed=100.0, seconds=100.0))
+    assert abs(slow - 0.01) < 1e-12 and position_lr_factor(stage_progress(560, 1000)) > 0.07
 
 
 def test_validation_stop_returns_to_the_best_state():

@@ -37,7 +37,7 @@ import mitsuba as mi
 from ..physics.fields import BY_NAME
 from . import outputs
 from .budget import (TIMED, Budget, EarlyStop, Replan, plan_stage, position_lr_factor,
-                     probe_batch_scale, time_iterations)
+                     probe_batch_scale, stage_progress, time_iterations)
 from .checkpoint import checkpoint_path, fingerprint, load_checkpoint, save_checkpoint
 from .config import FitConfig  # noqa: F401  (the fit's options, imported from here by callers)
 from .evaluate import score_stage1, score_stage2
@@ -161,9 +161,12 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
                                   keep=s1.snapshot)
         position = BY_NAME["center"]
 
+        t_share, share = t, budget.share("stage 1")
+
         def after_step(it, total):
-            s1.after_step(it, total)
-            s1.opt.scale_learning_rates(position_lr_factor(it, total),
+            progress = stage_progress(it, total, time.perf_counter() - t_share, share)
+            s1.after_step(it, total, progress)
+            s1.opt.scale_learning_rates(position_lr_factor(progress),
                                         lambda v: isinstance(v, GaussianVariable) and v.field is position)
         run.after_step = after_step
         run.replan = replanner(state, plan, start, t + budget.share("stage 1"))

@@ -125,11 +125,13 @@ class Stage1:
             self.opt.clamp()
         return float(total[0]), {k: float(v[0]) for k, v in terms.items()}, ok
 
-    def after_step(self, it, total):
+    def after_step(self, it, total, progress=None):
         """Densify every ``densify_every`` iterations in the first
-        ``densify_until`` of the stage."""
+        ``densify_until`` of the stage (``progress``, 0..1: how far the stage
+        is, by default ``it / total``; a budgeted stage counts its time too)."""
         cfg = self.ctx.config
-        if cfg.densify_every and it % cfg.densify_every == 0 and it <= cfg.densify_until * total:
+        progress = it / max(total, 1) if progress is None else progress
+        if cfg.densify_every and it % cfg.densify_every == 0 and progress <= cfg.densify_until:
             report = self.densify()
             self.ctx.log("\n[fit] densify @%d: %s" % (it, ", ".join(
                 "%s %d pruned, %d cloned, %d split: %d" % (n, *r) for n, r in report.items())))
