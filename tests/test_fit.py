@@ -481,6 +481,9 @@ def test_early_stop_and_budget_plan():
     plan = plan_stage("stage 1", 60.0, 0.01, done=4)     # 6000 iterations' worth of time
     assert plan.batch_scale == 4 and plan.iterations == 4 + 6000 // 4
     assert plan_stage("stage 2", 60.0, 0.01, batched=False).iterations == 6000
+    # A stage 1 whose larger batches cost as much per ray (a CPU) takes more steps instead.
+    cpu = plan_stage("stage 1", 60.0, 0.01, done=4, batched=False)
+    assert cpu.batch_scale == 1 and cpu.iterations == 4 + 6000
     small = plan_stage("stage 1", 10.0, 0.1)
     assert small.batch_scale == 1 and small.iterations == 100 <= MAX_ITERATIONS
     assert position_lr_factor(0.0) == 1.0 and abs(position_lr_factor(1.0) - 0.01) < 1e-12
@@ -637,7 +640,9 @@ def test_budget_sets_iterations_and_stops_in_time(scene_path, tmp_path):
     plans = metrics["selection"]["budget"]
     print(plans, metrics["times_s"])
     rows = list(csv.DictReader(open(tmp_path / "log.csv")))
-    for stage, share in (("stage 1", 0.3), ("stage 2", 0.3)):
+    from mi_invrgbl.fit.budget import SHARES
+    # Stage 1 keeps to its share; stage 2 takes what is left of the budget.
+    for stage, share in (("stage 1", SHARES["stage 1"]), ("stage 2", 1.0)):
         plan = plans[stage]
         assert plan["iterations"] > 4 and plan["seconds_per_iteration"] > 0
         assert plan["seconds"] <= share * 60 * budget + 1e-6
