@@ -573,6 +573,10 @@ def test_batch_probe_keeps_larger_batches_only_where_they_are_cheap():
     step, set_scale, scale = machine(lambda k: 0.004 * k)
     probe = probe_batch_scale(step, set_scale, 10, 60.0, 0.004)
     assert probe.scale == 1 and scale[0] == 1 and probe.iterations_run == 3
+    # Partly overhead-bound (2 CPU cores on a small scene): 4x the rays for
+    # 2.4x the time is not worth a quarter of the steps.
+    step, set_scale, scale = machine(lambda k: 0.01 * (1 + 0.467 * (k - 1)))
+    assert probe_batch_scale(step, set_scale, 10, 60.0, 0.01).scale == 1
     # Cheap, but the share would leave too few steps: no larger batch.
     step, set_scale, scale = machine(lambda k: 0.01)
     assert probe_batch_scale(step, set_scale, 10, 0.01 * (MIN_STEPS - 1), 0.01).scale == 1
