@@ -720,6 +720,32 @@ def test_sun_trial_keeps_to_its_share_of_a_budget(scene_path, tmp_path, monkeypa
     assert metrics["iterations"]["stage 2"] >= t["iterations"]
 
 
+def test_a_sun_trial_that_takes_every_stage2_step_is_logged_as_stage2(scene_path, tmp_path,
+                                                                   monkeypatch):
+    # Without a budget the trial's steps count in stage 2's: a trial as long
+    # as the stage leaves it no steps of its own. Its winner is the stage's
+    # result, and log.csv and the iteration count end at stage 2, not stage 1.
+    import csv
+    from mi_invrgbl.fit import runner
+    real_choose = runner.choose_lighting
+
+    def narrowly_rejected(state):
+        choice = real_choose(state)
+        sun = choice.report["sun"]
+        sun.update(gain=0.03, use_sun=False, direction=sun.get("direction", [0.3, 0.4, 0.866]))
+        choice.use_sun, choice.sun_direction, choice.sun_irradiance = False, None, 0.0
+        return choice
+
+    monkeypatch.setattr(runner, "choose_lighting", narrowly_rejected)
+    metrics = run_fit(scene_path, small_config(tmp_path, stage2_iterations=6,
+                                               sun_trial_iterations=50), log=lambda *a: None)
+    assert metrics["selection"]["sun"]["trial"]["iterations"] == 6
+    assert metrics["iterations"]["stage 2"] == 6
+    rows = list(csv.DictReader(open(tmp_path / "log.csv")))
+    assert rows[-1]["stage"] == "stage 2" and int(rows[-1]["iteration"]) == 6
+    assert np.isfinite(float(rows[-1]["heldout_psnr"]))
+
+
 @pytest.mark.parametrize("trial, unscorable", [(4, False), (0, False), (4, True)])
 def test_sun_trial_decides_a_narrowly_rejected_sun(scene_path, tmp_path, monkeypatch, trial,
                                                    unscorable):

@@ -232,6 +232,13 @@ def fit_materials(state: FitState, stage2, start, checkpoint, budget=None, fresh
         if isinstance(run.stop, ValidationStop):
             run.stop.restore_best(stage2.restore, last, "stage 2")
         return last
+    if fresh and start > 0:
+        # The sun trial ran every iteration the stage had (an unbudgeted
+        # fit counts the trial's steps in the stage's): its winner is the
+        # stage's result, and the log and the iteration count say so
+        # rather than ending at stage 1.
+        record_point(state, run, start)
+        state.iterations["stage 2"] = start
     return max(start, total)
 
 
