@@ -166,6 +166,36 @@ def test_interrupt_writes_checkpoint_and_outputs(scene_path, tmp_path, monkeypat
     assert metrics["interrupted"] is False
 
 
+def test_interrupt_during_the_sun_trial_writes_outputs(scene_path, tmp_path, monkeypatch):
+    # Ctrl-C while the trial of a narrowly rejected sun runs: the fit ends
+    # as interrupted with its outputs written, and --resume finishes it.
+    from mi_invrgbl.fit import runner, stage2
+    real_choose, real = runner.choose_lighting, stage2.Stage2.iteration
+
+    def narrowly_rejected(state):
+        choice = real_choose(state)
+        sun = choice.report["sun"]
+        sun.update(gain=0.03, use_sun=False, direction=sun.get("direction", [0.3, 0.4, 0.866]))
+        choice.use_sun, choice.sun_direction, choice.sun_irradiance = False, None, 0.0
+        return choice
+
+    def interrupted(self, it, weights=None):
+        if it == 2:
+            raise KeyboardInterrupt
+        return real(self, it, weights)
+
+    monkeypatch.setattr(runner, "choose_lighting", narrowly_rejected)
+    monkeypatch.setattr(stage2.Stage2, "iteration", interrupted)
+    lines = []
+    metrics = run_fit(scene_path, small_config(tmp_path, sun_trial_iterations=4), log=lines.append)
+    assert metrics["interrupted"] is True
+    assert any("interrupted during the sun trial" in str(x) for x in lines)
+    assert (tmp_path / "checkpoints" / "latest.npz").is_file() and (tmp_path / "scene.xml").is_file()
+    monkeypatch.setattr(stage2.Stage2, "iteration", real)
+    metrics = run_fit(scene_path, small_config(tmp_path, resume=True), log=lambda *a: None)
+    assert metrics["interrupted"] is False and metrics["iterations"]["stage 2"] == 24
+
+
 def test_bad_weights_and_missing_scene(tmp_path):
     from mi_invrgbl.errors import UserError
     with pytest.raises(ValueError):

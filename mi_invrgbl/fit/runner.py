@@ -98,7 +98,15 @@ def run_fit(scene_path, config: FitConfig, log=print):
             start = config.sun_trial_iterations if budget is not None else \
                 min(config.sun_trial_iterations, config.stage2_iterations)
             limit = None if budget is None else SUN_TRIAL_SHARE * budget.share("stage 2")
-            stage2, start = sun_trial(state, frozen, stage2, lighting, alternative, start, limit)
+            try:
+                stage2, start = sun_trial(state, frozen, stage2, lighting, alternative, start, limit)
+            except KeyboardInterrupt:
+                # Ctrl-C during the trial: stage 2's start is checkpointed
+                # already (``--resume`` starts stage 2 from it, keeping the
+                # lighting test's decision); write the outputs so far.
+                state.log("\n[fit] interrupted during the sun trial: writing the outputs so far; "
+                          "--resume starts stage 2 afresh from its checkpoint")
+                raise Interrupted() from None
         last = fit_materials(state, stage2, start, checkpoint, budget, fresh=fresh)
         stage2.commit()
         report_sun_refinement(state)
