@@ -27,6 +27,18 @@ def small_config(out, **kw):
     return FitConfig(**base)
 
 
+def narrow_sun_rejection(choose):
+    """``choose_lighting`` made to reject its sun narrowly (gain 0.03, bar
+    0.05), so that the sun trial runs."""
+    def narrowly_rejected(state):
+        choice = choose(state)
+        sun = choice.report["sun"]
+        sun.update(gain=0.03, use_sun=False, direction=sun.get("direction", [0.3, 0.4, 0.866]))
+        choice.use_sun, choice.sun_direction, choice.sun_irradiance = False, None, 0.0
+        return choice
+    return narrowly_rejected
+
+
 @pytest.fixture(scope="module")
 def scene_path(tmp_path_factory):
     d = tmp_path_factory.mktemp("fitscene")
@@ -172,12 +184,7 @@ def test_interrupt_during_the_sun_trial_writes_outputs(scene_path, tmp_path, mon
     from mi_invrgbl.fit import runner, stage2
     real_choose, real = runner.choose_lighting, stage2.Stage2.iteration
 
-    def narrowly_rejected(state):
-        choice = real_choose(state)
-        sun = choice.report["sun"]
-        sun.update(gain=0.03, use_sun=False, direction=sun.get("direction", [0.3, 0.4, 0.866]))
-        choice.use_sun, choice.sun_direction, choice.sun_irradiance = False, None, 0.0
-        return choice
+    narrowly_rejected = narrow_sun_rejection(real_choose)
 
     def interrupted(self, it, weights=None):
         if it == 2:
@@ -759,12 +766,7 @@ def test_a_sun_trial_that_takes_every_stage2_step_is_logged_as_stage2(scene_path
     from mi_invrgbl.fit import runner
     real_choose = runner.choose_lighting
 
-    def narrowly_rejected(state):
-        choice = real_choose(state)
-        sun = choice.report["sun"]
-        sun.update(gain=0.03, use_sun=False, direction=sun.get("direction", [0.3, 0.4, 0.866]))
-        choice.use_sun, choice.sun_direction, choice.sun_irradiance = False, None, 0.0
-        return choice
+    narrowly_rejected = narrow_sun_rejection(real_choose)
 
     monkeypatch.setattr(runner, "choose_lighting", narrowly_rejected)
     metrics = run_fit(scene_path, small_config(tmp_path, stage2_iterations=6,
@@ -788,12 +790,7 @@ def test_sun_trial_decides_a_narrowly_rejected_sun(scene_path, tmp_path, monkeyp
     real_choose, real_score = runner.choose_lighting, runner.score_stage2
     scored = []
 
-    def narrowly_rejected(state):
-        choice = real_choose(state)
-        sun = choice.report["sun"]
-        sun.update(gain=0.03, use_sun=False, direction=sun.get("direction", [0.3, 0.4, 0.866]))
-        choice.use_sun, choice.sun_direction, choice.sun_irradiance = False, None, 0.0
-        return choice
+    narrowly_rejected = narrow_sun_rejection(real_choose)
 
     def score_spy(stage2, frames, *a, **k):
         scored.append([f.index for f in frames])
