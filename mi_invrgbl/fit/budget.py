@@ -81,8 +81,8 @@ def plan_stage(name, seconds, seconds_per_iteration, done=0, batched=True) -> St
     (``batched``: the stage samples rays and a larger batch costs little
     more per step; stage 2 renders whole frames, and on a CPU a doubled
     batch costs a doubled step: the KITTI excerpt's stage 1, 300 s of
-    4 096-ray steps, reached 18.2 dB held-out where 8 192-ray steps reached
-    17.6 dB in the same time)."""
+    4 096-ray steps, scored 18.28 dB on the validation frames where 8 192-ray
+    steps scored 17.77 in the same time, ``tests/bench/stage1_budget.py``)."""
     n = max(1, int(seconds / max(seconds_per_iteration, 1e-6)))
     scale = 1
     while batched and n > MAX_ITERATIONS and scale < 4:
@@ -99,10 +99,11 @@ PROBE_SCALES = (4, 16)
 #: A larger batch is kept when it gives this much more rays per second
 #: (4x the rays for at most 1.6x the time): stage 1 learns more from more
 #: steps than from more rays per step, so a batch must be nearly free to
-#: be worth fewer steps. A GPU's is (4x the rays for about the same time); on
-#: 2 CPU cores the street's was not (4x for 2.4x the time, 1.7x the rays per
-#: second): taken at a bar of 1.5, its stage 1 peaked at 25.15 dB held-out
-#: after 100 steps where 4 096-ray steps had reached 25.31 after 300...
+#: be worth fewer steps (KITTI, 300 s of stage 1: twice the rays per step
+#: scored 0.5 dB lower on the validation frames). A GPU's batch is nearly
+#: free (4x the rays for about the same time); on 2 CPU cores the street's
+#: was not (4x for 2.4x the time, 1.7x the rays per second), and the bar of
+#: 1.5 took it...
 PROBE_GAIN = 2.5
 #: ...and still leaves the stage this many steps in its share.
 MIN_STEPS = 300

@@ -151,12 +151,13 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
 
         def set_scale(k):
             s1.batch_camera, s1.batch_lidar = base_camera * k, base_lidar * k
-        probe = probe_batch_scale(s1.iteration, set_scale, start, budget.share("stage 1"), spi)
+        share = budget.share("stage 1")
+        probe = probe_batch_scale(s1.iteration, set_scale, start, share, spi)
         start += probe.iterations_run
         # Past MAX_ITERATIONS the batch grows only where the probe found
         # larger batches cheap (a GPU); on a CPU more steps of the
         # configured batch learn faster than fewer, larger ones.
-        plan = plan_stage("stage 1", budget.share("stage 1") - (time.perf_counter() - t),
+        plan = plan_stage("stage 1", share - (time.perf_counter() - t),
                           probe.seconds_per_iteration, done=start, batched=probe.scale > 1)
         set_scale(probe.scale * plan.batch_scale)
         plan.batch_scale *= probe.scale
@@ -167,20 +168,19 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
         state.selection.setdefault("budget", {})["stage 1"] = dict(
             plan.as_dict(), probe={str(k): round(v, 4) for k, v in probe.timings.items()})
         total = plan.iterations
-        run.stop = ValidationStop(state, plan, t + budget.share("stage 1"),
+        started = t     # (``t`` is reused below, after the stage)
+        run.stop = ValidationStop(state, plan, started + share,
                                   lambda: score_stage1(state, state.validation_frames),
                                   keep=s1.snapshot)
         position = BY_NAME["center"]
 
-        t_share, share = t, budget.share("stage 1")
-
         def after_step(it, total):
-            progress = stage_progress(it, total, time.perf_counter() - t_share, share)
+            progress = stage_progress(it, total, time.perf_counter() - started, share)
             s1.after_step(it, total, progress)
             s1.opt.scale_learning_rates(position_lr_factor(progress),
                                         lambda v: isinstance(v, GaussianVariable) and v.field is position)
         run.after_step = after_step
-        run.replan = replanner(state, plan, start, t + budget.share("stage 1"))
+        run.replan = replanner(state, plan, start, started + share)
     elif budget is not None:
         # A resumed budgeted fit keeps the batch its plan chose.
         k = int(state.selection.get("budget", {}).get("stage 1", {}).get("batch_scale", 1))

@@ -25,6 +25,7 @@ import drjit as dr
 import mitsuba as mi
 
 from . import losses
+from .budget import stage_progress
 from ..physics.fields import BY_NAME, GEOMETRY
 from ..physics.gaussian_ply import GaussianCloud
 from .render import camera_unlit, lidar_beams
@@ -130,7 +131,7 @@ class Stage1:
         ``densify_until`` of the stage (``progress``, 0..1: how far the stage
         is, by default ``it / total``; a budgeted stage counts its time too)."""
         cfg = self.ctx.config
-        progress = it / max(total, 1) if progress is None else progress
+        progress = stage_progress(it, total) if progress is None else progress
         if cfg.densify_every and it % cfg.densify_every == 0 and progress <= cfg.densify_until:
             report = self.densify()
             self.ctx.log("\n[fit] densify @%d: %s" % (it, ", ".join(
