@@ -252,91 +252,123 @@ def table(rows) -> str:
 # The plot (OpenCV drawing: matplotlib is not a dependency)
 # ----------------------------------------------------------------------------
 
-COLOURS = {"street": (200, 90, 20), "kitti": (30, 120, 230)}      # BGR
+#: One colour per variant (this run's first), BGR; cases are told apart by
+#: their place on the axes and the label at each curve's end.
+PALETTE = [(190, 80, 10), (20, 110, 235), (40, 150, 40), (150, 40, 150), (110, 110, 110),
+           (20, 170, 200)]
+#: Wall times span a GPU's seconds to the 2-core machine's hour: a log axis.
+X_TICKS = [0.5, 1, 2, 5, 10, 20, 50, 100, 200]
 
 
-def _panel(img, x0, y0, w, h, series, title, ylabel, xmax):
-    """Axes at (x0, y0) of size w x h; ``series``: (label, colour, [(x, y)], dashed)."""
+@dataclass
+class Series:
+    label: str               # drawn at the curve's last point
+    colour: tuple
+    points: list             # [(wall minutes, value or None)]
+    baseline: bool = False   # dashed line, hollow markers
+
+
+def _panel(img, x0, y0, w, h, series, title, ylabel, xlim):
+    """Axes at (x0, y0) of size w x h with a log time axis over ``xlim`` (minutes)."""
     import cv2
 
-    ys = [y for _, _, pts, _ in series for _, y in pts if y is not None]
+    ys = [y for s in series for x, y in s.points if y is not None and x]
     if not ys:
         return
     lo, hi = min(ys), max(ys)
     pad = 0.1 * (hi - lo) if hi > lo else max(abs(hi) * 0.1, 0.1)
     lo, hi = lo - pad, hi + pad
+    lx0, lx1 = math.log(xlim[0]), math.log(xlim[1])
 
     def px(x, y):
-        return (int(x0 + w * x / xmax), int(y0 + h - h * (y - lo) / (hi - lo)))
+        return (int(x0 + w * (math.log(x) - lx0) / (lx1 - lx0)),
+                int(y0 + h - h * (y - lo) / (hi - lo)))
 
-    cv2.rectangle(img, (x0, y0), (x0 + w, y0 + h), (0, 0, 0), 1)
+    black, grey = (0, 0, 0), (90, 90, 90)
+    cv2.rectangle(img, (x0, y0), (x0 + w, y0 + h), black, 1)
     for k in range(5):
         y = lo + (hi - lo) * k / 4
-        p = px(0, y)
-        cv2.line(img, (x0 - 4, p[1]), (x0, p[1]), (0, 0, 0), 1)
-        cv2.putText(img, "%.3g" % y, (x0 - 58, p[1] + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
-                    (0, 0, 0), 1, cv2.LINE_AA)
-        x = xmax * k / 4
-        q = px(x, lo)
-        cv2.line(img, (q[0], y0 + h), (q[0], y0 + h + 4), (0, 0, 0), 1)
-        cv2.putText(img, "%.3g" % x, (q[0] - 10, y0 + h + 18), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
-                    (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(img, title, (x0, y0 - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1,
+        p = px(xlim[0], y)
+        cv2.line(img, (x0 - 4, p[1]), (x0, p[1]), black, 1)
+        cv2.putText(img, "%.3g" % y, (x0 - 50, p[1] + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.38,
+                    black, 1, cv2.LINE_AA)
+    for t in X_TICKS:
+        if xlim[0] <= t <= xlim[1]:
+            q = px(t, lo)
+            cv2.line(img, (q[0], y0 + h), (q[0], y0 + h + 4), black, 1)
+            cv2.line(img, (q[0], y0 + 1), (q[0], y0 + h - 1), (225, 225, 225), 1)
+            cv2.putText(img, "%g" % t, (q[0] - 8, y0 + h + 18), cv2.FONT_HERSHEY_SIMPLEX, 0.38,
+                        black, 1, cv2.LINE_AA)
+    cv2.putText(img, title, (x0, y0 - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.5, black, 1, cv2.LINE_AA)
+    cv2.putText(img, ylabel, (x0 + 4, y0 + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, grey, 1,
                 cv2.LINE_AA)
-    cv2.putText(img, ylabel, (x0 + 4, y0 + 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (60, 60, 60), 1,
-                cv2.LINE_AA)
-    cv2.putText(img, "fit wall time [min]", (x0 + w // 2 - 60, y0 + h + 36),
-                cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-    for k, (label, colour, pts, dashed) in enumerate(series):
-        pts = [(x, y) for x, y in pts if y is not None and x is not None]
+    cv2.putText(img, "fit wall time [min, log]", (x0 + w // 2 - 80, y0 + h + 36),
+                cv2.FONT_HERSHEY_SIMPLEX, 0.45, black, 1, cv2.LINE_AA)
+    for s in series:
+        pts = [(x, y) for x, y in s.points if y is not None and x]
         for a, b in zip(pts[:-1], pts[1:]):
-            if dashed:
+            if s.baseline:
                 n = 12
-                for s in range(0, n, 2):
-                    pa = px(a[0] + (b[0] - a[0]) * s / n, a[1] + (b[1] - a[1]) * s / n)
-                    pb = px(a[0] + (b[0] - a[0]) * (s + 1) / n, a[1] + (b[1] - a[1]) * (s + 1) / n)
-                    cv2.line(img, pa, pb, colour, 2, cv2.LINE_AA)
+                for k in range(0, n, 2):
+                    pa = px(math.exp(math.log(a[0]) + (math.log(b[0]) - math.log(a[0])) * k / n),
+                            a[1] + (b[1] - a[1]) * k / n)
+                    pb = px(math.exp(math.log(a[0]) + (math.log(b[0]) - math.log(a[0])) * (k + 1) / n),
+                            a[1] + (b[1] - a[1]) * (k + 1) / n)
+                    cv2.line(img, pa, pb, s.colour, 1, cv2.LINE_AA)
             else:
-                cv2.line(img, px(*a), px(*b), colour, 2, cv2.LINE_AA)
-        for p in pts:      # baselines hollow
-            cv2.circle(img, px(*p), 4, colour, 1 if dashed else -1, cv2.LINE_AA)
-        cv2.putText(img, label, (x0 + w - 150, y0 + 18 + 16 * k), cv2.FONT_HERSHEY_SIMPLEX,
-                    0.42, colour, 1, cv2.LINE_AA)
+                cv2.line(img, px(*a), px(*b), s.colour, 2, cv2.LINE_AA)
+        for p in pts:
+            cv2.circle(img, px(*p), 4, s.colour, 1 if s.baseline else -1, cv2.LINE_AA)
+        if pts and s.label:
+            q = px(*pts[-1])
+            cv2.putText(img, s.label, (min(q[0] + 6, x0 + w - 40), q[1] - 6),
+                        cv2.FONT_HERSHEY_SIMPLEX, 0.36, s.colour, 1, cv2.LINE_AA)
 
 
 def plot(rows, path: Path):
+    """Error against wall time: held-out PSNR, LiDAR intensity RMSE and the
+    street's materials, one colour per variant, the lookup baselines dashed;
+    a legend strip below names the colours."""
     import cv2
     import numpy as np
 
-    img = np.full((380, 1180, 3), 255, np.uint8)
-    xmax = max([r.wall_s / 60 for r in rows if r.wall_s] + [1.0]) * 1.1
+    img = np.full((420, 1180, 3), 255, np.uint8)
+    walls = [r.wall_s / 60 for r in rows if r.wall_s]
+    xlim = (min(walls + [1.0]) / 1.5, max(walls + [1.0]) * 1.5)
     psnr, intensity, materials = [], [], []
-    # In the order the rows came: this run's (or the first --merge file's) are drawn bright.
+    # In the order the rows came: this run's (or the first --merge file's) first.
     variants = list(dict.fromkeys(r.variant for r in rows))
+    colours = {v: PALETTE[k % len(PALETTE)] for k, v in enumerate(variants)}
     for case in CASES:
         for variant in variants:
             rs = sorted((r for r in rows if r.case == case and r.variant == variant and r.wall_s),
                         key=lambda r: r.wall_s)
             if not rs:
                 continue
-            c = COLOURS[case] if variant == variants[0] else tuple(v // 2 for v in COLOURS[case])
-            name = case + ("" if len(variants) == 1 else " " + variant.split("_")[0])
-            psnr.append((name, c, [(r.wall_s / 60, r.psnr) for r in rs], False))
+            c, t = colours[variant], [r.wall_s / 60 for r in rs]
+            psnr.append(Series(case, c, list(zip(t, [r.psnr for r in rs]))))
             if any(r.nn_psnr is not None for r in rs):
-                psnr.append((name + " NN", c, [(r.wall_s / 60, r.nn_psnr) for r in rs], True))
-            intensity.append((name, c, [(r.wall_s / 60, r.intensity_rmse) for r in rs], False))
-            intensity.append((name + " NN", c, [(r.wall_s / 60, r.nn_intensity_rmse) for r in rs],
-                              True))
+                psnr.append(Series("", c, list(zip(t, [r.nn_psnr for r in rs])), True))
+            intensity.append(Series(case, c, list(zip(t, [r.intensity_rmse for r in rs]))))
+            intensity.append(Series("", c, list(zip(t, [r.nn_intensity_rmse for r in rs])), True))
             if any(r.albedo_rmse is not None for r in rs):
-                dashed = variant != variants[0]
-                materials.append(("albedo RMSE" + name[len(case):], (20, 150, 20),
-                                  [(r.wall_s / 60, r.albedo_rmse) for r in rs], dashed))
-                materials.append(("normal err / 100 deg" + name[len(case):], (120, 20, 160),
-                                  [(r.wall_s / 60, None if r.normal_deg is None
-                                    else r.normal_deg / 100) for r in rs], dashed))
-    _panel(img, 70, 40, 300, 270, psnr, "held-out PSNR", "dB", xmax)
-    _panel(img, 460, 40, 300, 270, intensity, "LiDAR intensity RMSE", "RMSE", xmax)
-    _panel(img, 850, 40, 300, 270, materials, "street materials (lower is better)", "", xmax)
+                materials.append(Series("albedo", c, list(zip(t, [r.albedo_rmse for r in rs]))))
+                materials.append(Series("normal/100", c, list(zip(
+                    t, [None if r.normal_deg is None else r.normal_deg / 100 for r in rs]))))
+    _panel(img, 70, 40, 300, 270, psnr, "held-out PSNR", "dB", xlim)
+    _panel(img, 460, 40, 300, 270, intensity, "LiDAR intensity RMSE", "RMSE", xlim)
+    _panel(img, 850, 40, 300, 270, materials, "street: albedo RMSE, normal err [deg]/100",
+           "", xlim)
+    # Legend strip: the variants' colours, then what the dashed lines are.
+    x, y = 70, 385
+    for v in variants:
+        cv2.line(img, (x, y - 4), (x + 24, y - 4), colours[v], 2, cv2.LINE_AA)
+        cv2.putText(img, v, (x + 30, y), cv2.FONT_HERSHEY_SIMPLEX, 0.42, colours[v], 1,
+                    cv2.LINE_AA)
+        x += 40 + 9 * len(v)
+    cv2.putText(img, "dashed, hollow: nearest-neighbour lookup baseline (nearest training image; "
+                "every training LiDAR point)", (70, y + 24), cv2.FONT_HERSHEY_SIMPLEX, 0.42,
+                (60, 60, 60), 1, cv2.LINE_AA)
     cv2.imwrite(str(path), img)
 
 
