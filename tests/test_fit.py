@@ -539,6 +539,22 @@ def test_stage_progress_counts_the_time_share_of_a_slow_stage():
     assert abs(slow - 0.01) < 1e-12 and position_lr_factor(stage_progress(560, 1000)) > 0.07
 
 
+def test_overrun_report_names_the_fixed_costs():
+    # The KITTI excerpt's 2-minute fit on 2 cores (metrics.json times_s):
+    # its steps between the stages alone exceed the budget.
+    from mi_invrgbl.fit.budget import overrun_report
+    times = {"load": 1.2, "stage 1": 56.5, "selection": 25.1, "material init": 6.1,
+             "freeze": 88.1, "stage 2": 1.1, "lobe selection": 2.9, "samples selection": 0.2}
+    note = overrun_report(2, 251.7, times)
+    assert note.startswith("[fit] ran 252 s of a 2-minute budget")
+    assert "stages took 58 s, the rest 194 s" in note
+    assert note.index("freeze 88 s") < note.index("selection 25 s") < note.index("other 71 s")
+    assert "samples selection" not in note        # under a second: counted in "other"
+    assert overrun_report(2, 125.0, times) is None     # within 5 %
+    assert overrun_report(0, 999.0, times) is None     # no budget
+    assert overrun_report(8, float("nan"), times) is None
+
+
 def test_validation_stop_returns_to_the_best_state():
     # A stage whose validation score peaks at iteration 2 and falls after:
     # it stops after PATIENCE evaluations without a gain and goes back to
@@ -727,6 +743,19 @@ def test_stage2_start_is_restored_exactly(scene_path, tmp_path):
     assert state.lr_state == {"stage 2": {"albedo": 0.01}}
     assert state.selection["shading_init"] == {"light_scale": 1.0}
     assert state.sun_visibility_learned == point.sun_visibility_learned
+
+
+def test_a_budget_below_the_fixed_costs_is_reported(scene_path, tmp_path):
+    # A budget smaller than loading, tracing and selection: the fit still
+    # finishes (both stages get their timed steps only), and its last log
+    # line says where the time went instead of leaving the overrun unexplained.
+    lines = []
+    metrics = run_fit(scene_path, small_config(tmp_path, budget_minutes=0.02, eval_every=5),
+                      log=lines.append)
+    assert metrics["wall_s"] > 1.05 * 0.02 * 60
+    note = [str(x) for x in lines if str(x).startswith("[fit] ran ")]
+    assert len(note) == 1 and "of a 0.02-minute budget" in note[0], lines[-3:]
+    assert "freeze" in note[0]
 
 
 def test_sun_trial_keeps_to_its_share_of_a_budget(scene_path, tmp_path, monkeypatch):

@@ -248,3 +248,26 @@ class Budget:
 
     def left(self):
         return self.deadline - time.perf_counter()
+
+
+#: A fit more than this fraction past its budget says where the time went.
+OVERRUN_TOLERANCE = 0.05
+
+
+def overrun_report(minutes, wall_s, times) -> str | None:
+    """The line a budgeted fit logs when it ran past its budget: the steps
+    outside the two stages (``times``: seconds by step, as in metrics.json's
+    ``times_s``) that no share of the budget can shrink, largest first.
+    Those fixed costs grow with the frames and pixels, not the budget; on the
+    KITTI excerpt on 2 cores they alone exceed a 2-minute budget."""
+    if minutes <= 0 or not wall_s > (1.0 + OVERRUN_TOLERANCE) * 60.0 * minutes:
+        return None
+    stages = sum(t for name, t in times.items() if name.startswith("stage"))
+    named = sorted(((t, name) for name, t in times.items()
+                    if not name.startswith("stage") and t >= 1.0), reverse=True)
+    other = wall_s - stages - sum(t for t, _ in named)
+    parts = ["%s %.0f s" % (n, t) for t, n in named] + (["other %.0f s" % other] if other >= 1.0
+                                                         else [])
+    return ("[fit] ran %.0f s of a %g-minute budget: the stages took %.0f s, the rest %.0f s "
+            "(%s), which no budget shrinks; budgets below about %.0f s leave the stages no time"
+            % (wall_s, minutes, stages, wall_s - stages, ", ".join(parts), wall_s - stages))

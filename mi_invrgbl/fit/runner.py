@@ -36,8 +36,8 @@ import mitsuba as mi
 
 from ..physics.fields import BY_NAME
 from . import outputs
-from .budget import (TIMED, Budget, EarlyStop, Replan, plan_stage, position_lr_factor,
-                     probe_batch_scale, stage_progress, time_iterations)
+from .budget import (TIMED, Budget, EarlyStop, Replan, overrun_report, plan_stage,
+                     position_lr_factor, probe_batch_scale, stage_progress, time_iterations)
 from .checkpoint import checkpoint_path, fingerprint, load_checkpoint, save_checkpoint
 from .config import FitConfig  # noqa: F401  (the fit's options, imported from here by callers)
 from .evaluate import score_stage1, score_stage2
@@ -127,6 +127,10 @@ def run_fit(scene_path, config: FitConfig, log=print):
     t = time.perf_counter()
     metrics = outputs.write_outputs(state, stage2, interrupted=interrupted)
     state.times["outputs"] = time.perf_counter() - t
+    if budget is not None and not interrupted:
+        note = overrun_report(budget.minutes, time.perf_counter() - t_start, state.times)
+        if note:
+            log(note)
     return metrics
 
 
@@ -194,6 +198,7 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
         t = time.perf_counter()
         removed = s1.prune_sky_lookalikes()
         state.selection["sky_lookalikes"] = {"removed": removed, "seconds": time.perf_counter() - t}
+        state.times["sky look-alikes"] = state.selection["sky_lookalikes"]["seconds"]
         state.log("[fit] sky look-alikes: %s removed (sky-coloured Gaussians with only sky "
                   "behind them; %.1f s)" % (", ".join("%s %d" % kv for kv in removed.items())
                                             or "none", time.perf_counter() - t))
