@@ -1,5 +1,6 @@
 """The convergence bench's budget arithmetic, table and plot (no fit runs)."""
 
+import json
 import pathlib
 import sys
 
@@ -28,9 +29,41 @@ def test_table_and_plot(tmp_path):
     lines = text.splitlines()
     assert len(lines) == 2 + len(rows)
     assert "2 (over)" in lines[2] and "| - |" in lines[4]
+    rows.append(bc.Row("kitti", 8, 1984, 1158, False, 19.2, 0.6, None, None, None, 0.12, 0.16,
+                       1200, 188, "cuda_ad_rgb"))
     bc.plot(rows, tmp_path / "p.png")
     img = cv2.imread(str(tmp_path / "p.png"))
-    assert img is not None and img.shape == (380, 1180, 3)
-    # Both cases' colours were drawn.
-    for bgr in bc.COLOURS.values():
+    assert img is not None and img.shape == (420, 1180, 3)
+    # Each variant's colour was drawn (rows without a variant are one variant).
+    for bgr in bc.PALETTE[:2]:
         assert np.any(np.all(img == np.array(bgr, np.uint8), axis=2))
+
+
+def test_over_budget_marks_only_runs_past_the_tolerance():
+    assert not bc.ran_over(2, 120.0 * (1 + bc.OVER_TOLERANCE) - 1)
+    assert bc.ran_over(2, 252.0)          # KITTI at 2 minutes on 2 cores
+    assert not bc.ran_over(8, None)       # a fit without a wall time is not judged
+
+
+def test_rows_written_whole_and_marked(tmp_path):
+    rows = [bc.Row("kitti", 2, 130, 5, bc.ran_over(2, 252.0), psnr=15.57, wall_s=252.0,
+                   variant="llvm_ad_rgb"),
+            bc.Row("street", 8, 640, 846, bc.ran_over(8, 453.0), psnr=25.81, wall_s=453.0,
+                   variant="llvm_ad_rgb")]
+    text = bc.write_rows(tmp_path, rows)
+    assert (tmp_path / "convergence.md").read_text() == text + "\n"
+    lines = text.splitlines()
+    assert "2 (over)" in lines[2] and "(over)" not in lines[3]
+    back = json.loads((tmp_path / "convergence.json").read_text())
+    assert [r["case"] for r in back] == ["kitti", "street"]
+    assert not list(tmp_path.glob("*.partial"))
+
+
+def test_merged_rows_are_judged_by_their_wall_time(tmp_path):
+    old = tmp_path / "old.json"
+    # A row written before the mark existed: over_budget False, wall 2.1x the budget.
+    old.write_text(json.dumps([dict(case="kitti", budget_min=2, stage1=130, stage2=5,
+                                    psnr=15.5, wall_s=252.0, variant="llvm_ad_rgb")]))
+    bc.main(["--merge", "%s:earlier" % old, "--work", str(tmp_path / "w")])
+    md = (tmp_path / "w" / "convergence.md").read_text()
+    assert "earlier-llvm_ad_rgb | 2 (over)" in md
