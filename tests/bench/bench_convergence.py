@@ -71,6 +71,17 @@ class Row:
     variant: str = ""
     #: The camera's lookup baseline: the nearest training image, unchanged.
     nn_psnr: float | None = None
+    #: Held-out PSNR as trained (``log.csv``): stage 1's best, stage 2's last.
+    stage1_peak_psnr: float | None = None
+    stage2_end_psnr: float | None = None
+
+    @property
+    def stage2_gain(self):
+        """Stage 2's last held-out PSNR less stage 1's best (the fit may
+        trail stage 1 by at most 1 dB)."""
+        if self.stage1_peak_psnr is None or self.stage2_end_psnr is None:
+            return None
+        return self.stage2_end_psnr - self.stage1_peak_psnr
 
 
 def cli(variant, *args):
@@ -119,6 +130,20 @@ def prepare(case, work: Path, variant, log) -> Path:
             raise SystemExit(f"{data}: KITTI excerpt not found (skip it with --cases street)")
     run(cli(variant, "import", data, "-o", scene, *CASES[case]["import_args"]), log)
     return scene
+
+
+def stage_psnr(log_csv: Path):
+    """(stage 1's best, stage 2's last) held-out PSNR as trained, from a
+    fit's ``log.csv``; None where a stage logged none."""
+    import csv
+    by_stage = {"stage 1": [], "stage 2": []}
+    if log_csv.is_file():
+        for r in csv.DictReader(open(log_csv)):
+            v = r.get("heldout_psnr") or ""
+            if r["stage"] in by_stage and v not in ("", "nan"):
+                by_stage[r["stage"]].append(float(v))
+    s1, s2 = by_stage["stage 1"], by_stage["stage 2"]
+    return (max(s1) if s1 else None), (s2[-1] if s2 else None)
 
 
 def iterations_run(log_csv: Path) -> dict:
@@ -217,16 +242,18 @@ def fit_budget(case, scene: Path, budget, variant, args, cal, log) -> Row:
         n1, n2 = ran.get("stage 1"), ran.get("stage 2")
     wall = fit.get("wall_s")
     over = over or ran_over(budget, wall)
+    s1_peak, s2_end = stage_psnr(out / "log.csv")
     return Row(case, budget, n1, n2, over, mean.get("psnr"), mean.get("ssim"),
                mean.get("albedo_rmse"), mean.get("normal_angle_deg"), mean.get("relight_psnr"),
                mean.get("lidar_intensity_rmse"), mean.get("baseline_intensity_rmse"),
-               fit.get("peak_rss_mb"), wall, variant, nn_psnr=mean.get("baseline_psnr"))
+               fit.get("peak_rss_mb"), wall, variant, nn_psnr=mean.get("baseline_psnr"),
+               stage1_peak_psnr=s1_peak, stage2_end_psnr=s2_end)
 
 
 COLUMNS = [("case", "case", "%s"), ("variant", "variant", "%s"), ("budget_min", "budget [min]", "%g"),
            ("stage1", "stage 1 it", "%d"), ("stage2", "stage 2 it", "%d"),
            ("psnr", "PSNR [dB]", "%.2f"), ("nn_psnr", "NN image PSNR [dB]", "%.2f"),
-           ("ssim", "SSIM", "%.3f"),
+           ("ssim", "SSIM", "%.3f"), ("stage2_gain", "stage 2 - stage 1 best [dB]", "%+.2f"),
            ("albedo_rmse", "albedo RMSE", "%.3f"), ("normal_deg", "normal err [deg]", "%.1f"),
            ("relight_psnr", "relight PSNR [dB]", "%.2f"),
            ("intensity_rmse", "intensity RMSE", "%.4f"),

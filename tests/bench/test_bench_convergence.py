@@ -67,3 +67,15 @@ def test_merged_rows_are_judged_by_their_wall_time(tmp_path):
     bc.main(["--merge", "%s:earlier" % old, "--work", str(tmp_path / "w")])
     md = (tmp_path / "w" / "convergence.md").read_text()
     assert "earlier-llvm_ad_rgb | 2 (over)" in md
+
+
+def test_stage_psnr_reads_stage1_best_and_stage2_last(tmp_path):
+    log = tmp_path / "log.csv"
+    log.write_text("wall_s,stage,iteration,heldout_psnr\n"
+                   "1,stage 1,0,10.4\n2,stage 1,50,25.14\n3,stage 1,100,24.9\n4,stage 1,150,nan\n"
+                   "5,stage 2,0,24.15\n6,stage 2,50,\n7,stage 2,100,25.83\n")
+    assert bc.stage_psnr(log) == (25.14, 25.83)
+    assert bc.stage_psnr(tmp_path / "missing.csv") == (None, None)
+    row = bc.Row("street", 8, 640, 846, psnr=25.81, stage1_peak_psnr=25.14, stage2_end_psnr=25.83)
+    assert abs(row.stage2_gain - 0.69) < 1e-9 and "| +0.69 |" in bc.table([row])
+    assert bc.Row("kitti", 8, 1, 1).stage2_gain is None
