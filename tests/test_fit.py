@@ -555,6 +555,20 @@ def test_overrun_report_names_the_fixed_costs():
     assert overrun_report(8, float("nan"), times) is None
 
 
+def test_small_budget_warning_from_the_measured_step():
+    # Stage 1's measured step and the frame count predict the steps no
+    # budget shrinks. The KITTI excerpt on 2 cores (40 frames, 0.30 s a
+    # step) cannot keep 2 minutes (it took 252 s) but keeps 8 (478 s); the
+    # street (24 frames, 0.15 s) kept 2 minutes (125 s); so did an H100 (0.02 s).
+    from mi_invrgbl.fit.budget import small_budget_warning
+    note = small_budget_warning(2, 3.0, 60.0, 40, 0.301)
+    assert note is not None and "about 193 s" in note and "about 256 s" in note
+    assert small_budget_warning(8, 3.0, 240.0, 40, 0.310) is None
+    assert small_budget_warning(2, 3.0, 60.0, 24, 0.149) is None
+    assert small_budget_warning(2, 8.0, 60.0, 40, 0.02) is None
+    assert small_budget_warning(0, 3.0, 60.0, 40, 0.3) is None
+
+
 def test_validation_stop_returns_to_the_best_state():
     # A stage whose validation score peaks at iteration 2 and falls after:
     # it stops after PATIENCE evaluations without a gain and goes back to
@@ -756,6 +770,9 @@ def test_a_budget_below_the_fixed_costs_is_reported(scene_path, tmp_path):
     note = [str(x) for x in lines if str(x).startswith("[fit] ran ")]
     assert len(note) == 1 and "of a 0.02-minute budget" in note[0], lines[-3:]
     assert "the stages took" in note[0] and "which no budget shrinks" in note[0]
+    # ...and said so once stage 1 was timed, before it ran.
+    early = [str(x) for x in lines if "is too little for this scene" in str(x)]
+    assert len(early) == 1 and lines.index(early[0]) < lines.index(note[0])
     # Steps of a second or more are named (freezing the geometry, at least).
     assert ("freeze %.0f s" % metrics["times_s"]["freeze"] in note[0]) == \
         (metrics["times_s"]["freeze"] >= 1.0)

@@ -252,6 +252,13 @@ class Budget:
 
 #: A fit more than this fraction past its budget says where the time went.
 OVERRUN_TOLERANCE = 0.05
+#: The steps outside the two stages (sky look-alikes, lighting, freezing,
+#: selections, outputs) cost about this many configured stage-1 steps per
+#: frame: 16 to 29 in the street's and the KITTI excerpt's fits on 2 cores at
+#: 2- to 60-minute budgets (metrics.json: wall time less the stages, over
+#: frames x seconds per step). The low end, so that a fit which keeps to its
+#: budget is not warned.
+FIXED_STEPS_PER_FRAME = 16
 
 
 def overrun_report(minutes, wall_s, times) -> str | None:
@@ -271,3 +278,18 @@ def overrun_report(minutes, wall_s, times) -> str | None:
     return ("[fit] ran %.0f s of a %g-minute budget: the stages took %.0f s, the rest %.0f s "
             "(%s), which no budget shrinks; budgets below about %.0f s leave the stages no time"
             % (wall_s, minutes, stages, wall_s - stages, ", ".join(parts), wall_s - stages))
+
+
+def small_budget_warning(minutes, elapsed, stage1_share, frames, seconds_per_step) -> str | None:
+    """The line a budgeted fit logs once stage 1 is timed, where the budget
+    cannot hold the steps no budget shrinks: ``elapsed`` seconds spent so
+    far, stage 1's share, and an estimate of the rest from ``frames`` and a
+    configured stage-1 step's ``seconds_per_step``. None where it fits."""
+    rest = FIXED_STEPS_PER_FRAME * frames * seconds_per_step
+    expected = elapsed + stage1_share + rest
+    if minutes <= 0 or expected <= (1.0 + OVERRUN_TOLERANCE) * 60.0 * minutes:
+        return None
+    return ("[fit] budget: %g minutes is too little for this scene on this machine: after "
+            "stage 1 the other steps take about %.0f s here (estimated from %d frames at %.2f s "
+            "per stage-1 step), so the fit will take about %.0f s and stage 2 gets only its "
+            "timed steps" % (minutes, rest, frames, seconds_per_step, expected))

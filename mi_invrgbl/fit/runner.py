@@ -37,7 +37,8 @@ import mitsuba as mi
 from ..physics.fields import BY_NAME
 from . import outputs
 from .budget import (TIMED, Budget, EarlyStop, Replan, overrun_report, plan_stage,
-                     position_lr_factor, probe_batch_scale, stage_progress, time_iterations)
+                     position_lr_factor, probe_batch_scale, small_budget_warning,
+                     stage_progress, time_iterations)
 from .checkpoint import checkpoint_path, fingerprint, load_checkpoint, save_checkpoint
 from .config import FitConfig  # noqa: F401  (the fit's options, imported from here by callers)
 from .evaluate import score_stage1, score_stage2
@@ -171,6 +172,10 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
                      "/".join(str(k) for k in probe.timings)))
         state.selection.setdefault("budget", {})["stage 1"] = dict(
             plan.as_dict(), probe={str(k): round(v, 4) for k, v in probe.timings.items()})
+        warning = small_budget_warning(budget.minutes, t - state.t_start, share,
+                                       len(state.observations), spi)
+        if warning:
+            state.log(warning)
         total = plan.iterations
         started = t     # (``t`` is reused below, after the stage)
         run.stop = ValidationStop(state, plan, started + share,
