@@ -336,12 +336,11 @@ def _panel(img, x0, y0, w, h, series, title, ylabel, xlim):
         for a, b in zip(pts[:-1], pts[1:]):
             if s.baseline:
                 n = 12
+
+                def along(f):   # the point a fraction f from a to b, evenly on the log axis
+                    return px(a[0] * (b[0] / a[0]) ** f, a[1] + (b[1] - a[1]) * f)
                 for k in range(0, n, 2):
-                    pa = px(math.exp(math.log(a[0]) + (math.log(b[0]) - math.log(a[0])) * k / n),
-                            a[1] + (b[1] - a[1]) * k / n)
-                    pb = px(math.exp(math.log(a[0]) + (math.log(b[0]) - math.log(a[0])) * (k + 1) / n),
-                            a[1] + (b[1] - a[1]) * (k + 1) / n)
-                    cv2.line(img, pa, pb, s.colour, 1, cv2.LINE_AA)
+                    cv2.line(img, along(k / n), along((k + 1) / n), s.colour, 1, cv2.LINE_AA)
             else:
                 cv2.line(img, px(*a), px(*b), s.colour, 2, cv2.LINE_AA)
         for p in pts:
