@@ -261,13 +261,21 @@ OVERRUN_TOLERANCE = 0.05
 FIXED_STEPS_PER_FRAME = 16
 
 
+def over_budget(minutes, wall_s) -> bool:
+    """Whether ``wall_s`` seconds ran more than :data:`OVERRUN_TOLERANCE`
+    past a budget of ``minutes`` (never for no budget or no wall time; also
+    the convergence bench's "over" mark)."""
+    return (minutes is not None and minutes > 0 and wall_s is not None
+            and wall_s > (1.0 + OVERRUN_TOLERANCE) * 60.0 * minutes)
+
+
 def overrun_report(minutes, wall_s, times) -> str | None:
     """The line a budgeted fit logs when it ran past its budget: the steps
     outside the two stages (``times``: seconds by step, as in metrics.json's
     ``times_s``) that no share of the budget can shrink, largest first.
     Those fixed costs grow with the frames and pixels, not the budget; on the
     KITTI excerpt on 2 cores they alone exceed a 2-minute budget."""
-    if minutes <= 0 or not wall_s > (1.0 + OVERRUN_TOLERANCE) * 60.0 * minutes:
+    if not over_budget(minutes, wall_s):
         return None
     stages = sum(t for name, t in times.items() if name.startswith("stage"))
     named = sorted(((t, name) for name, t in times.items()
@@ -287,7 +295,7 @@ def small_budget_warning(minutes, elapsed, stage1_share, frames, seconds_per_ste
     configured stage-1 step's ``seconds_per_step``. None where it fits."""
     rest = FIXED_STEPS_PER_FRAME * frames * seconds_per_step
     expected = elapsed + stage1_share + rest
-    if minutes <= 0 or expected <= (1.0 + OVERRUN_TOLERANCE) * 60.0 * minutes:
+    if not over_budget(minutes, expected):
         return None
     return ("[fit] budget: %g minutes is too little for this scene on this machine: after "
             "stage 1 the other steps take about %.0f s here (estimated from %d frames at %.2f s "
