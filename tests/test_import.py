@@ -566,3 +566,83 @@ def test_extend_walls_option_is_checked():
     from mi_invrgbl.io.importer import ImportOptions
     with pytest.raises(UserError, match="extend-walls"):
         ImportOptions(extend_walls=-1).validate()
+
+
+def _truck_side(top_z=0.2, length=6.0):
+    """Object-frame points of a truck's near side (y = -1) up to ``top_z`` and,
+    behind it, a low bonnet whose top the scan measured (x > 3)."""
+    xs = np.arange(-length / 2, length / 2, 0.1)
+    zs = np.arange(-1.0, top_z + 1e-9, 0.1)
+    side = np.array([(x, -1.0, z) for x in xs for z in zs])
+    bonnet = np.array([(x, y, -0.3) for x in np.arange(3.2, 4.0, 0.1) for y in np.arange(-0.9, 0.9, 0.1)])
+    return side, bonnet
+
+
+def test_extend_object_top_only_where_the_top_beam_cut():
+    side, bonnet = _truck_side()
+    pts = np.concatenate([side, bonnet])
+    normals = np.tile([0.0, -1.0, 0.0], (len(pts), 1))
+    normals[len(side):] = [0.0, 0.0, 1.0]
+    tangents = np.tile([1.0, 0.0, 0.0], (len(pts), 1))
+    cut = np.zeros(len(pts), bool)
+    cut[:len(side)] = side[:, 2] >= 0.2 - 1e-9          # the side's top row met the top beam
+    new, n, t, seed = objs.extend_object_top(pts, normals, tangents, cut, headroom=1.5)
+    assert len(new) > 0 and len(new) == len(n) == len(t) == len(seed)
+    assert np.all(seed < len(side)) and np.all(cut[seed])    # only the cut side grows
+    assert np.allclose(new[:, 1], -1.0) and np.allclose(n, [0.0, -1.0, 0.0])
+    assert new[:, 2].min() == pytest.approx(0.35) and new[:, 2].max() == pytest.approx(1.7)
+    # every cut column continues once, with no gaps
+    columns = np.unique(np.floor(new[:, 0] / 0.15))
+    assert len(new) == len(np.unique(seed)) * 10 and len(columns) >= 35
+    # nothing cut, too few cut points, or no headroom: nothing added
+    for c, h in ((np.zeros(len(pts), bool), 1.5), (cut & (np.arange(len(pts)) < 5), 1.5), (cut, 0.0)):
+        assert len(objs.extend_object_top(pts, normals, tangents, c, headroom=h)[0]) == 0
+
+
+def test_import_extends_a_truck_the_top_beam_cut():
+    """The objects step: a truck whose side the top beam cut gains Gaussians
+    above it (with the seed's LiDAR albedo); a car whose roof was measured does not."""
+    from mi_invrgbl.io.importer import ImportState, _objects
+    top = np.radians(2.0)
+    side, _ = _truck_side()
+    car = np.array([(x, y, z) for x in np.arange(-2, 2, 0.1) for y in np.arange(-0.8, 0.8, 0.1)
+                    for z in (-0.7, 0.0)])
+    tracks = []
+    for name, p, elev in (("object_1", side, np.where(side[:, 2] >= 0.2 - 1e-9, top, -0.1)),
+                          ("object_2", car, np.full(len(car), -0.2))):
+        rng = np.random.default_rng(1)
+        tr = objs.ObjectTrack(name=name, track_id=int(name[-1]), kind="moving",
+                              size_hwl=np.array([2.4, 2.2, 6.0]), poses=np.eye(4)[None],
+                              labelled=np.ones(1, bool), displacement_m=3.0, moving=True,
+                              dynamic=True)
+        tr.points.append(p + rng.normal(0, 1e-3, p.shape))
+        tr.intensity.append(np.full(len(p), 0.4))
+        tr.distance.append(np.full(len(p), 3.0))
+        tr.view.append(np.tile([0.0, -1.0, 0.0], (len(p), 1)))
+        tr.elevation.append(elev)
+        tracks.append(tr)
+    state = ImportState(positions=[0], scans=[], images=[], K=np.eye(3), size=(1, 1), crop=None,
+                        skipped=[], poses=np.eye(4)[None], objects=tracks,
+                        lidar_table=np.linspace(top, np.radians(-25), 64),
+                        object_report=[{"track_id": 1}, {"track_id": 2}])
+    state.intensity = ("reflectivity", None)
+    opts = ImportOptions(object_points=2000, voxel=0.05)
+    _objects(state, opts, log=lambda *a: None)
+    truck, car_cloud = state.object_clouds["object_1"], state.object_clouds["object_2"]
+    added = len(truck["centers"]) - 2000
+    assert added > 0 and state.object_report[0]["gaussians_above_top_beam"] == added
+    assert truck["centers"][:, 2].max() > 0.2 + objs.OBJECT_HEADROOM - 0.2
+    assert np.all(np.isfinite(truck["scales"])) and np.all(truck["lidar_albedo"][-added:] > 0)
+    assert len(car_cloud["centers"]) == 2000 and state.object_report[1]["gaussians_above_top_beam"] == 0
+    state2 = ImportState(positions=[0], scans=[], images=[], K=np.eye(3), size=(1, 1), crop=None,
+                         skipped=[], poses=np.eye(4)[None], objects=tracks[:1],
+                         lidar_table=np.linspace(top, np.radians(-25), 64))
+    state2.intensity = ("reflectivity", None)
+    _objects(state2, ImportOptions(object_points=2000, voxel=0.05, object_headroom=0.0),
+             log=lambda *a: None)
+    assert len(state2.object_clouds["object_1"]["centers"]) == 2000
+
+
+def test_object_headroom_option_is_checked():
+    with pytest.raises(UserError, match="object-headroom"):
+        ImportOptions(object_headroom=-0.5).validate()

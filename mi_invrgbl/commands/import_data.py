@@ -64,6 +64,9 @@ def add_parser(subparsers):
     p.add_argument("--extend-walls", type=float, default=d.extend_walls,
                    help="extend facades cut by the LiDAR's top beam upward by this many metres, "
                         "so the cameras' view above the LiDAR has Gaussians (default %(default)s; 0: off)")
+    p.add_argument("--object-headroom", type=float, default=d.object_headroom,
+                   help="continue a moving object whose LiDAR points the top beam cut (a truck "
+                        "beside the car) this many metres up (default %(default)s; 0: off)")
     p.add_argument("--check-odometry", action="store_true",
                    help="also run LiDAR odometry on a drive with poses and report its error")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
@@ -82,7 +85,8 @@ def options_from_args(args):
         opacity=args.opacity, roughness=args.roughness,
         min_range=args.min_range, max_range=args.max_range,
         intensity=args.intensity, beams=args.beams, sky_order=args.sky_order,
-        extend_walls=args.extend_walls, triangulate=args.triangulate,
+        extend_walls=args.extend_walls, object_headroom=args.object_headroom,
+        triangulate=args.triangulate,
         motion=args.motion,
         check_odometry=args.check_odometry, overwrite=args.overwrite,
         verify=not args.no_verify)

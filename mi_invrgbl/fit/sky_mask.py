@@ -37,6 +37,7 @@ import numpy as np
 import cv2
 
 from ..physics.colour import LUMINANCE
+from ..io.objects import OBJECT_HEADROOM
 
 #: Least sRGB luminance of a sky pixel (a white or blue daylight sky reads
 #: 0.6-1.0; the bridge, trees and road in the KITTI excerpt stay below 0.45).
@@ -50,12 +51,13 @@ MAX_WARMTH = 0.05
 RETURN_MARGIN = 2
 #: A moving object whose highest Gaussian is within :data:`CUT_DEG` of the
 #: scan's highest return (its top was cut by the top beam, not measured) has
-#: its outline extended this far up (metres, world z): beside the car a truck
-#: rises far above the top beam, so its LiDAR points and the Gaussians made
-#: from them end at about the sensor's height (the white tank of a truck in
-#: the KITTI excerpt read as sky without this). Cars ahead, whose roofs the
-#: scan measured, keep their outline (extended, they hid a third of the sky).
-OBJECT_HEADROOM = 2.0
+#: its outline extended :data:`~mi_invrgbl.io.objects.OBJECT_HEADROOM` up
+#: (world z): beside the car a truck rises far above the top beam, so its
+#: LiDAR points end at about the sensor's height (the white tank of a truck in
+#: the KITTI excerpt read as sky without this; an import that extended the
+#: object already, its Gaussians reach above the cut). Cars ahead, whose
+#: roofs the scan measured, keep their outline (extended, they hid a third of
+#: the sky).
 CUT_DEG = 1.0
 
 

@@ -43,7 +43,10 @@ normals
 objects
     Per dynamic object ``object_points`` Gaussians in its box (object frame):
     its LiDAR points when there are enough, topped up with samples on the
-    box's sides and top.
+    box's sides and top. An object whose scan the top beam cut (a truck
+    beside the car) gets its cut columns continued ``object_headroom``
+    metres up (:func:`mi_invrgbl.io.objects.extend_object_top`), on top of
+    the ``object_points``.
 colours
     Albedo from the camera images: each Gaussian's centre (objects at their
     per-frame pose) projected into every frame, z-buffered against all
@@ -70,7 +73,8 @@ from .. import outdir
 from ..errors import UserError
 from . import init_gaussians as ig
 from .images import read_image_uint8
-from .objects import tracks_to_objects, in_box, box_surface_samples
+from .objects import (tracks_to_objects, in_box, box_surface_samples, extend_object_top,
+                      OBJECT_HEADROOM, TOP_BEAM_MARGIN_DEG)
 
 #: sweeps with fewer points are skipped (with a warning)
 MIN_SCAN_POINTS = 10
@@ -98,6 +102,7 @@ class ImportOptions:
     sky_order: int = 2
     sun_irradiance: float = 0.0
     extend_walls: float = 10.0         # metres above the top beam's hits (0: off)
+    object_headroom: float = OBJECT_HEADROOM  # metres above a cut object's top (0: off)
     triangulate: bool = True           # camera-only geometry (io/triangulate.py)
     motion: bool = True                # moving objects from the LiDAR when unlabelled (io/motion.py)
     overwrite: bool = False
@@ -128,6 +133,8 @@ class ImportOptions:
             raise UserError("--min-range must be >= 0 and below --max-range")
         if not 0 <= self.extend_walls <= 100:
             raise UserError(f"--extend-walls must lie in [0, 100] metres (got {self.extend_walls})")
+        if not 0 <= self.object_headroom <= 10:
+            raise UserError(f"--object-headroom must lie in [0, 10] metres (got {self.object_headroom})")
         if self.sky_order not in (0, 1, 2, 3):
             raise UserError(f"--sky-order must be 0..3 (got {self.sky_order})")
         return self
@@ -518,6 +525,8 @@ def _accumulate(src, state: ImportState, opts, log):
             p_obj = ig.transform_points(world, inv)
             inside = in_box(p_obj, o.half_extent) & (rng >= opts.min_range)
             if inside.any():
+                q = pts[inside].astype(np.float64)
+                o.elevation.append(np.arctan2(q[:, 2], np.hypot(q[:, 0], q[:, 1])))
                 sensor_obj = inv[:3, :3] @ t + inv[:3, 3]
                 view = sensor_obj - p_obj[inside]
                 o.points.append(p_obj[inside])
@@ -680,10 +689,13 @@ def _objects(state: ImportState, opts, log):
             inten = np.concatenate(o.intensity)
             dist = np.concatenate(o.distance)
             view = np.concatenate(o.view)
+            elev = np.concatenate(o.elevation)
         else:
             P = np.zeros((0, 3))
-            inten = dist = np.zeros(0)
+            inten = dist = elev = np.zeros(0)
             view = np.zeros((0, 3))
+        top_beam = float(np.max(state.lidar_table)) - np.radians(TOP_BEAM_MARGIN_DEG)
+        lidar_cut = np.zeros(0, bool)
         lidar_pts = np.zeros((0, 3))
         lidar_n = np.zeros((0, 3))
         lidar_t = np.zeros((0, 3))
@@ -706,15 +718,21 @@ def _objects(state: ImportState, opts, log):
                 lidar_rho = ig.group_mean(ig.lidar_albedo(inten[u], dist[u], cos, kind, ref),
                                           ps[u], take.size)
                 lidar_pts, lidar_n, lidar_t = centres[take], nrm, tan
+                # A Gaussian is cut when any of its voxel's points was.
+                cut_vox = np.zeros(nv, bool)
+                np.logical_or.at(cut_vox, inverse, elev >= top_beam)
+                lidar_cut = cut_vox[take]
+        ext_pts, ext_n, ext_t, ext_seed = extend_object_top(
+            lidar_pts, lidar_n, lidar_t, lidar_cut, opts.object_headroom)
         n_fill = m - lidar_pts.shape[0]
         fill_pts, fill_n = box_surface_samples(o.half_extent, n_fill, rng)
         helper = np.where(np.abs(fill_n[:, 2:3]) > 0.5, [[1.0, 0, 0]], [[0, 0, 1.0]])
         fill_t = np.cross(fill_n, helper)
-        pts = np.concatenate([lidar_pts, fill_pts])
-        normals = np.concatenate([lidar_n, fill_n])
-        tangents = np.concatenate([lidar_t, fill_t])
+        pts = np.concatenate([lidar_pts, fill_pts, ext_pts])
+        normals = np.concatenate([lidar_n, fill_n, ext_n])
+        tangents = np.concatenate([lidar_t, fill_t, ext_t])
         fill_rho = np.median(lidar_rho) if lidar_rho.size else 0.5
-        rho = np.concatenate([lidar_rho, np.full(n_fill, fill_rho)])
+        rho = np.concatenate([lidar_rho, np.full(n_fill, fill_rho), lidar_rho[ext_seed]])
         _, dist_nn = ig.knn(pts, min(opts.knn, len(pts)))
         scales = ig.tangent_scales(dist_nn, smallest=0.2 * opts.voxel, largest=0.3)
         clouds[o.name] = {"centers": pts.astype(np.float32), "scales": scales,
@@ -723,11 +741,13 @@ def _objects(state: ImportState, opts, log):
                           "lidar_albedo": np.clip(rho, 0, 1).astype(np.float32),
                           "from_lidar": int(lidar_pts.shape[0])}
         log("[import] %s (%s, %.1fx%.1fx%.1f m): %d Gaussians, %d from LiDAR points, "
-            "%d on the box surface" % (o.name, o.kind, *o.size_hwl[::-1], m,
-                                       lidar_pts.shape[0], n_fill))
+            "%d on the box surface, %d above the top beam's cut"
+            % (o.name, o.kind, *o.size_hwl[::-1], len(pts), lidar_pts.shape[0], n_fill,
+               len(ext_pts)))
         for r in state.object_report:
             if r["track_id"] == o.track_id:
                 r["gaussians_from_lidar"] = int(lidar_pts.shape[0])
+                r["gaussians_above_top_beam"] = int(len(ext_pts))
     state.object_clouds = clouds
     state.counts["objects"] = len(clouds)
 

@@ -38,6 +38,17 @@ MOVING_THRESHOLD = 0.5
 GROUND_CLEARANCE = 0.15
 #: horizontal / upward margin of the box when collecting an object's points
 BOX_MARGIN = 0.25
+#: How far above the top beam's hits a vehicle may rise (metres, object z): a
+#: truck beside the car rises far above the LiDAR's top beam, which cuts its
+#: points at about the sensor's height. The import extends such an object's
+#: Gaussians this far up (:func:`extend_object_top`); the fit's sky mask keeps
+#: the same headroom free of sky (``mi_invrgbl.fit.sky_mask``). 2 m covers a
+#: 4 m truck seen from a car's roof.
+OBJECT_HEADROOM = 2.0
+#: A point counts as cut by the top beam within this many degrees of it.
+TOP_BEAM_MARGIN_DEG = 0.6
+#: Fewer cut points than this on an object is a stray return, not a cut top.
+MIN_CUT_POINTS = 10
 
 
 def kitti_box_from_object(h: float) -> np.ndarray:
@@ -110,6 +121,7 @@ class ObjectTrack:
     intensity: list = field(default_factory=list)   # (M,)
     distance: list = field(default_factory=list)    # (M,) metres from the sensor
     view: list = field(default_factory=list)        # (M, 3) unit point -> sensor, object frame
+    elevation: list = field(default_factory=list)   # (M,) radians above the sensor's horizon
 
     @property
     def half_extent(self) -> np.ndarray:
@@ -193,3 +205,41 @@ def box_surface_samples(half_extent, n: int, rng: np.random.Generator):
 def object_to_world_quaternion(T: np.ndarray) -> np.ndarray:
     """Rotation of a pose as a w-first quaternion (for reports)."""
     return matrix_to_quaternion_fast(T[None, :3, :3])[0]
+
+
+def extend_object_top(points, normals, tangents, cut, headroom=OBJECT_HEADROOM,
+                      cell=0.15, step=0.15):
+    """Gaussian centres that continue an object's surfaces above the top beam.
+
+    ``points`` (object frame, z up) are the object's Gaussian centres from
+    its LiDAR points, ``cut`` marks those measured within
+    :data:`TOP_BEAM_MARGIN_DEG` of the top beam. In each ``cell`` x ``cell``
+    column of the object's footprint whose highest point was cut (the scan
+    ended there, not the object), that point is repeated every ``step``
+    metres up to ``headroom`` above it, with its normal and tangent -- the
+    object counterpart of the import's wall extension. The cameras see
+    these parts (a truck's tank, a bus's upper half); stage 1 of ``fit``
+    makes the copies above the real roof transparent.
+
+    Returns ``(centres, normals, tangents, seed index per new centre)``,
+    empty when fewer than :data:`MIN_CUT_POINTS` points were cut.
+    """
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    cut = np.asarray(cut, bool).reshape(-1)
+    empty = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, np.int64))
+    if headroom <= 0 or int(cut.sum()) < MIN_CUT_POINTS:
+        return empty
+    keys = np.floor(points[:, :2] / cell).astype(np.int64)
+    _, col = np.unique(keys, axis=0, return_inverse=True)
+    col = col.ravel()
+    zmax = np.full(int(col.max()) + 1, -np.inf)
+    np.maximum.at(zmax, col, points[:, 2])
+    top = np.nonzero(cut & (points[:, 2] >= zmax[col] - 1e-6))[0]
+    if top.size == 0:
+        return empty
+    k = np.arange(1, int(round(headroom / step)) + 1)
+    seeds = np.repeat(top, k.size)
+    new = points[seeds].copy()
+    new[:, 2] += np.tile(k * step, top.size)
+    return (new, np.asarray(normals, np.float64)[seeds],
+            np.asarray(tangents, np.float64)[seeds], seeds)
