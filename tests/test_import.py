@@ -364,6 +364,15 @@ def test_fill_poses_interpolates_and_holds():
     np.testing.assert_allclose(out[0], pose(0, 0))                 # held before
     np.testing.assert_allclose(out[2], pose(0.2, 1), atol=1e-9)    # interpolated
     np.testing.assert_allclose(out[4], pose(0.4, 2))               # held after
+    # A track registered from the LiDAR moves on at its end's velocity
+    # (heading held); a single labelled frame has none.
+    ext = objs.fill_poses([1, 2, 3], [pose(0, 0), pose(0.2, 1.0), pose(0.4, 2.2)], 6,
+                          extrapolate=True)
+    np.testing.assert_allclose(ext[5][:3, :3], pose(0.4, 0)[:3, :3])
+    np.testing.assert_allclose(ext[5][:3, 3], [2.2 + 2 * 1.1, 0, 0], atol=1e-9)
+    np.testing.assert_allclose(ext[0][:3, 3], [-1.1, 0, 0], atol=1e-9)
+    one = objs.fill_poses([2], [pose(0.1, 3.0)], 4, extrapolate=True)
+    assert all(np.allclose(T, pose(0.1, 3.0)) for T in one)
 
 
 # ----------------------------------------------------------------------------

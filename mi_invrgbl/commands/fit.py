@@ -74,6 +74,10 @@ FLAGS = (
      "edge, with no LiDAR return or moving object there, are fitted as sky, not Gaussians; switch "
      "it off for scenes without sky, e.g. indoors under a white ceiling above the LiDAR's top beam)",
      {"invert": True}),
+    ("--fixed-object-poses", "object_poses",
+     "keep the moving objects' poses as imported (default: stage 1 corrects each object's pose "
+     "at every training frame from the images and LiDAR; other frames interpolate)",
+     {"invert": True}),
     ("--keep-sky-lookalikes", "prune_sky_lookalikes",
      "keep stage-1 Gaussians that have the sky's colour and only sky behind them (default: "
      "removed before stage 2; they cast shadows no roof casts)", {"invert": True}),

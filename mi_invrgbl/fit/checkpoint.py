@@ -83,6 +83,8 @@ def save_checkpoint(ctx: FitState, fingerprint: dict, stage, iteration, opt=None
     arrays["sky/sun_direction"] = np.array(dr.detach(ctx.params[ctx.sun_dir_key]), np.float32).ravel()
     for k in ("range_exponent", "angle_exponent", "beam_gains"):
         arrays["response/" + k] = np.array(getattr(ctx.response, k), np.float32)
+    if ctx.object_poses:
+        arrays.update({"poses/" + k: v for k, v in ctx.object_poses.state_dict().items()})
     meta = {"stage": stage, "iteration": iteration, "rng": ctx.rng.bit_generator.state,
             "selection": ctx.selection, "use_sun": ctx.use_sun, "times": ctx.times,
             "log": ctx.speed_log.rows, "config": ctx.config.to_json(),
@@ -113,6 +115,10 @@ def load_checkpoint(ctx: FitState, fingerprint: dict):
     ctx.response = Response(mi.Float(data["response/range_exponent"]),
                             mi.Float(data["response/angle_exponent"]),
                             mi.Float(data["response/beam_gains"]))
+    if ctx.object_poses:
+        # Corrections fitted before the checkpoint (stage 2 renders the frames with them).
+        ctx.object_poses.load_state_dict({k[6:]: v for k, v in data.items() if k.startswith("poses/")})
+        ctx.object_poses.bake()
     ctx.rng.bit_generator.state = meta["rng"]
     ctx.selection = meta.get("selection", {})
     # The SH order chosen before the checkpoint still holds: without it a

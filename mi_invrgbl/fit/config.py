@@ -14,7 +14,8 @@ MODEL_FIELDS = ("batch_rays", "lidar_batch_rays", "fit_width", "lidar_columns", 
                 "densify_until", "prune_opacity", "densify_grad", "densify_fraction", "split_scale",
                 "max_gaussians", "stage1_range", "stage1_drop", "stage1_sky", "seed", "fit_response",
                 "sun_candidates", "sun_gaussians", "per_frame_visibility", "learn_sun_direction",
-                "prune_sky_lookalikes", "sky_mask", "sun_visibility", "validation_every")
+                "prune_sky_lookalikes", "sky_mask", "sun_visibility", "validation_every",
+                "object_poses")
 
 
 @dataclass
@@ -100,6 +101,8 @@ class FitConfig:
     prune_sky_lookalikes: bool = True  # drop sky-coloured Gaussians with only sky behind them
     sky_mask: bool = True  # mark the images' sky for stage 1 (.sky_mask); weight: stage1_sky
     sun_visibility: str = "learn"  # learn | trace: the paper's per-Gaussian v_sun, or traced only
+    #: Stage 1 corrects the moving objects' per-frame poses (.object_poses).
+    object_poses: bool = True
     #: Every n-th training frame (``index % n == n // 2``) is a validation frame:
     #: not trained on, it scores the model selection. 0: no validation split
     #: (selection then scores training frames). Held-out frames never take part.

@@ -86,6 +86,15 @@ def load_state(scene_path, config: FitConfig, log=print) -> FitState:
         held_out_frames=held_out,
         intensity_scale=float(np.percentile(seen, 95)) if seen.size else 1.0,
         response=Response(mi.Float(2.0), mi.Float(1.0), dr.ones(mi.Float, max(n_beams, 1))))
+    if config.object_poses:
+        from .object_poses import ObjectPoseFit
+        fit = ObjectPoseFit(observations, train, [n for n, v in model.nodes.items() if v.dynamic])
+        state.object_poses = fit if fit else None
+        if fit:
+            t_align = time.perf_counter()
+            state.selection["object_poses_start"] = fit.align_from_images(model, log)
+            fit.bake()
+            state.times["object poses"] = time.perf_counter() - t_align
     attach_sky_masks(state)
     state.times["load"] = time.perf_counter() - t
     cam = train[0].camera

@@ -27,7 +27,7 @@ from ..physics import hits as hitlib
 from ..physics.fields import BY_NAME, FIELDS, GEOMETRY, MATERIAL
 from ..physics.gaussian_ply import GaussianCloud
 from ..plugins.gaussians import cloud_from_shape, apply_transform
-from ..scene.posing import rotation_to_quat_xyzw
+from .object_poses import RigidPose
 
 GEOMETRY_KEYS = tuple(f.variable for f in GEOMETRY)
 MATERIAL_KEYS = tuple(f.variable for f in MATERIAL)
@@ -62,6 +62,12 @@ class Node:
         w = WIDTHS[key]
         a = np.array(self.values[key], np.float32)
         return a.reshape(self.count, w) if w > 1 else a.reshape(self.count)
+
+
+def as_rigid(pose) -> RigidPose:
+    """A pose as given (a 4x4 node -> world matrix, or a :class:`RigidPose`
+    that stage 1 differentiates in its corrections)."""
+    return pose if isinstance(pose, RigidPose) else RigidPose.from_matrix(pose)
 
 
 def _interleave(vectors, count):
@@ -121,10 +127,9 @@ class GaussianModel:
         q = mi.Quaternion4f(q.x, q.y, q.z, q.w)
         q = q * dr.rsqrt(dr.maximum(dr.squared_norm(q), 1e-20))
         if pose is not None and node.dynamic:
-            rot = pose[:3, :3]
-            c = mi.Matrix3f(rot.tolist()) @ c + mi.Vector3f(*[float(v) for v in pose[:3, 3]])
-            qr = rotation_to_quat_xyzw(rot)
-            q = mi.Quaternion4f(*[float(x) for x in qr]) * q
+            pose = as_rigid(pose)
+            c = pose.rotation @ c + pose.translation
+            q = pose.quaternion * q
         s = dr.exp(node.vec("log_scale"))
         # Same thickening as the shape plugin: flatter Gaussians lose rays.
         smax = dr.maximum(dr.maximum(s.x, s.y), s.z)
@@ -137,14 +142,15 @@ class GaussianModel:
         """World-frame unit normals (flat), from ``values`` (default: the node's)."""
         n = node.vec("normal") if values is None else node.vec_of(values, 3)
         if pose is not None and node.dynamic:
-            n = mi.Matrix3f(pose[:3, :3].tolist()) @ n
+            n = as_rigid(pose).rotation @ n
         n = n * dr.rsqrt(dr.maximum(dr.squared_norm(n), 1e-20))
         return _interleave([n.x, n.y, n.z], node.count)
 
     def push(self, poses=None, stage=1, update=True):
         """Write every node's world arrays into the scene (differentiably).
 
-        ``poses`` maps object names to their node -> world 4x4 at this frame.
+        ``poses`` maps object names to their node -> world pose at this frame
+        (4x4, or a :class:`RigidPose`).
         Stage 1 shows the view-independent colour as albedo.
         """
         poses = poses or {}

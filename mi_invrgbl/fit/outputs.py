@@ -95,11 +95,18 @@ def write_outputs(ctx, stage2, interrupted=False):
         plys[name] = path
     atomic_write_text(os.path.join(fit_dir, "scene.xml"), fitted_xml(ctx))
     atomic_write_text(os.path.join(fit_dir, "scene_lidar.xml"), fitted_xml(ctx, lidar=True))
+    frames = ctx.frames
+    if ctx.object_poses:
+        # The moving objects where stage 1 put them, for eval and the apps
+        # (frames.json in the fit folder is found before the import's).
+        frames = ctx.object_poses.corrected_frames(ctx.frames)
+        frames.save(os.path.join(fit_dir, "frames.json"))
+        ctx.selection["object_poses"] = ctx.object_poses.summary()
     if stage2 is not None and any(f.lidar is not None for f in ctx.train_frames):
         from .response import fit_scene_ray_drop
         ctx.selection["ray_drop"] = fit_scene_ray_drop(
             os.path.join(fit_dir, "scene.xml"), os.path.join(fit_dir, "scene_lidar.xml"),
-            frames=ctx.frames, log=ctx.log)
+            frames=frames, log=ctx.log)
     maps = 0
     if stage2 is not None:
         maps = write_maps(ctx, stage2, os.path.join(fit_dir, "maps"))

@@ -52,7 +52,7 @@ from .stage1 import Stage1
 from .stage2 import FrozenScene, Stage2
 from .state import FitState
 from .steps import restore_optimizer
-from .variables import GaussianVariable
+from .variables import GaussianVariable, PoseVariable
 
 
 def run_fit(scene_path, config: FitConfig, log=print):
@@ -186,8 +186,10 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
         def after_step(it, total):
             progress = stage_progress(it, total, time.perf_counter() - started, share)
             s1.after_step(it, total, progress)
+            # The objects' pose corrections settle with the positions they carry.
             s1.opt.scale_learning_rates(position_lr_factor(progress),
-                                        lambda v: isinstance(v, GaussianVariable) and v.field is position)
+                                        lambda v: isinstance(v, PoseVariable)
+                                        or (isinstance(v, GaussianVariable) and v.field is position))
         run.after_step = after_step
         run.replan = replanner(state, plan, start, started + share)
     elif budget is not None:

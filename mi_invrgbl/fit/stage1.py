@@ -31,7 +31,8 @@ from ..physics.gaussian_ply import GaussianCloud
 from .render import camera_unlit, lidar_beams
 from .render import gather_rays as _gather_rays
 from .steps import safe_step
-from .variables import GaussianVariable, Optimizer, SkySH
+from .object_poses import PARTS as POSE_PARTS
+from .variables import GaussianVariable, Optimizer, PoseVariable, SkySH
 
 #: Learning rate of the sky's SH coefficients (the Gaussians' are in the field table).
 SKY_LR = 1e-2
@@ -54,27 +55,47 @@ class Stage1:
         out = [GaussianVariable(self.model, name, f, f.lr * scale)
                for name in self.model.nodes for f in GEOMETRY + (BY_NAME["colour"],)]
         out.append(SkySH(self.ctx, SKY_LR * scale))
+        poses = self.ctx.object_poses
+        if poses:
+            out += [PoseVariable(poses, name, part, lr * scale, bound)
+                    for name in poses.objects for part, (lr, bound) in POSE_PARTS.items()]
         return out
 
     def build_optimizer(self):
         self.opt = Optimizer(self.variables())
 
     def pull(self):
+        """Adam's values into the model; every frame's object poses follow
+        the corrections (the validation scores and everything after stage 1
+        read ``frame.poses``)."""
         self.opt.pull()
+        if self.ctx.object_poses:
+            self.ctx.object_poses.bake()
+
+    def frame_poses(self, frame):
+        """The poses a training step renders ``frame`` with: differentiable
+        in the pose corrections where they are fitted."""
+        poses = self.ctx.object_poses
+        return poses.poses(frame) if poses else frame.poses
 
     def snapshot(self):
         """The stage's state, Gaussians (their number changes with
-        densification) and sky, as host arrays to come back to."""
+        densification), sky and object poses, as host arrays to come back to."""
         self.pull()
+        poses = self.ctx.object_poses
         return (self.model.state_dict(),
-                np.array(dr.detach(self.ctx.params[self.ctx.sky_key]), np.float32))
+                np.array(dr.detach(self.ctx.params[self.ctx.sky_key]), np.float32),
+                poses.state_dict() if poses else {})
 
     def restore(self, snapshot):
         """Return to a :meth:`snapshot`; Adam starts afresh from it."""
-        model, sky = snapshot
+        model, sky, poses = snapshot
         self.model.load_state_dict(model)
         self.ctx.params[self.ctx.sky_key] = mi.Float(sky)
         self.ctx.params.update()
+        if self.ctx.object_poses:
+            self.ctx.object_poses.load_state_dict(poses)
+            self.ctx.object_poses.bake()
         self.grad_accum = {}
         self.build_optimizer()
 
@@ -115,7 +136,7 @@ class Stage1:
         ctx = self.ctx
         frame = ctx.train_frames[self.rng.integers(0, len(ctx.train_frames))]
         self.pull()
-        self.model.push(frame.poses, stage=1)
+        self.model.push(self.frame_poses(frame), stage=1)
         terms = self.loss_terms(frame)
         total = mi.Float(0.0)
         for v in terms.values():

@@ -118,6 +118,30 @@ class SunVariable(Variable):
         return self.CLAMPS[self.part](value)
 
 
+@dataclass(eq=False)
+class PoseVariable(Variable):
+    """One part (translation ``t`` or rotation vector ``w``) of a moving
+    object's per-frame pose corrections (:class:`.object_poses.ObjectPoseFit`)."""
+    poses: object
+    name: str
+    part: str
+    lr: float
+    bound: float
+
+    @property
+    def key(self):
+        return self.poses.key(self.name, self.part)
+
+    def read(self):
+        return self.poses.values[self.name, self.part]
+
+    def write(self, value):
+        self.poses.values[self.name, self.part] = value
+
+    def clamp(self, value):
+        return dr.clip(value, -self.bound, self.bound)
+
+
 #: LiDAR response parameters: valid ranges.
 RESPONSE_RANGES = {"range_exponent": (-1.0, 4.0), "angle_exponent": (-1.0, 4.0),
                    "beam_gains": (1e-4, None)}

@@ -421,7 +421,7 @@ def _box(track: MotionTrack, n_frames: int, track_id: int) -> ObjectTrack:
     labelled[frames] = True
     return ObjectTrack(name=f"object_{track_id}", track_id=track_id, kind="moving",
                        size_hwl=np.array([size[2], size[1], size[0]]),
-                       poses=fill_poses(frames, poses, n_frames), labelled=labelled,
+                       poses=fill_poses(frames, poses, n_frames, extrapolate=True), labelled=labelled,
                        displacement_m=disp, moving=True, dynamic=True)
 
 
