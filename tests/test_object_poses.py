@@ -19,6 +19,7 @@ from mi_invrgbl.fit.model import GaussianModel
 from mi_invrgbl.fit.render import camera_unlit
 from mi_invrgbl.fit.steps import make_optimizer
 from mi_invrgbl.physics.gaussian_ply import quaternion_to_matrix
+from test_scene_graph import tiny_scene  # noqa: F401  (fixture)
 
 
 def _random_pose(rng):
@@ -277,3 +278,40 @@ def test_frame_view_samples_the_pixel_a_point_projects_to():
     _, seen = view.sample(o[pick] - 4.0 * d[pick])          # behind the camera
     assert not seen.any()
     assert not op._FrameView(SimpleNamespace(camera=None)).sample(o[pick])[1].any()
+
+
+def test_fit_outputs_place_objects_at_their_corrected_poses(tiny_scene, tmp_path):
+    """What ``eval`` and the applications read back -- the fit's scene.xml
+    (objects load at frame 0's pose) and its frames.json -- puts each
+    object where the fit had it at every frame."""
+    import shutil
+    from mi_invrgbl.fit.outputs import fitted_xml
+    from mi_invrgbl.scene.frames import Frames
+    from mi_invrgbl.scene.posing import set_frame
+    root, cloud, _ = tiny_scene
+    frames = Frames.load(root)
+    obs = [SimpleNamespace(index=r.index, held_out=r.held_out, poses=dict(r.objects)) for r in frames]
+    fit = op.ObjectPoseFit(obs, obs[:2], ["object_7"])
+    fit.values["object_7", "t"] = mi.Float(np.float32([0.3, -0.2, 0.1, -0.4, 0.1, 0.0, 0, 0, 0]))
+    fit.values["object_7", "w"] = mi.Float(np.float32([0.05, 0.0, 0.2, 0.0, -0.1, 0.1, 0, 0, 0]))
+    ctx = SimpleNamespace(scene_path=str(root / "scene.xml"), params={"sky": mi.Float(np.zeros(27))},
+                          sky_key="sky", sh_order=2, sky_emitter=SimpleNamespace(order=2),
+                          use_sun=False, selection={}, sun_visibility_learned=False,
+                          config=SimpleNamespace(samples=8, bounces=1, shadowing="smith"),
+                          object_poses=fit, frames=frames)
+    out = tmp_path / "fit"
+    out.mkdir()
+    (out / "scene.xml").write_text(fitted_xml(ctx))
+    shutil.copy(root / "object_7.ply", out / "object_7.ply")
+    fit.corrected_frames(frames).save(out / "frames.json")
+    fitted = Frames.load(out)
+    scene = mi.load_file(str(out / "scene.xml"))
+    fit.bake()
+    for i in (1, 2, 0):                  # frame 2 takes frame 1's correction (held)
+        set_frame(scene, fitted, i)
+        shape = [s for s in scene.shapes() if s.id() == "object_7"][0]
+        data = np.array(mi.traverse(shape)["data"]).reshape(-1, 10)
+        T = obs[i].poses["object_7"]
+        np.testing.assert_allclose(fitted[i].objects["object_7"], T, atol=1e-9)
+        np.testing.assert_allclose(data[:, :3], cloud.centers @ T[:3, :3].T + T[:3, 3], atol=2e-4)
+    assert not np.allclose(obs[0].poses["object_7"], frames[0].objects["object_7"])

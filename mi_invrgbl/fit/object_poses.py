@@ -143,8 +143,10 @@ class ObjectPoseFit:
         for name in self.objects:
             if name not in out:
                 continue
-            t, w = (mi.Vector3f(*[dr.gather(mi.Float, self.values[name, part], mi.UInt32(3 * k + j))
-                                  for j in range(3)]) for part in PARTS)
+            # (opaque indices: one compiled kernel serves every frame)
+            t, w = (mi.Vector3f(*[dr.gather(mi.Float, self.values[name, part],
+                                            dr.opaque(mi.UInt32, 3 * k + j)) for j in range(3)])
+                    for part in PARTS)
             out[name] = RigidPose.from_matrix(out[name]).corrected(t, w)
         return out
 

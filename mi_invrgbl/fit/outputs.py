@@ -37,6 +37,13 @@ def fitted_xml(ctx, lidar=False):
                 else np.zeros(3)
             for child in xml.shsun_emitter(None, sky, order, d, e):
                 xml.set_child(em, child)
+    if ctx.object_poses:
+        # Objects load at frame 0's pose (``scene.posing.set_frame`` moves
+        # them on from there): the corrected one, as in the fit's frames.json.
+        first = ctx.object_poses.corrected_frames(ctx.frames).frames[0].objects
+        for shape in doc.root.iter("shape"):
+            if shape.get("type") == "gaussians" and shape.get("id") in first:
+                xml.set_child(shape, xml.transform(first[shape.get("id")]))
     if lidar:
         r = ctx.response
         lobe = ctx.selection.get("lidar_lobe", {}).get("model", "pbr")
