@@ -3,11 +3,12 @@
 The import gives every moving object a pose per frame: KITTI tracklets, or
 rigid registration of its LiDAR points (:mod:`mi_invrgbl.io.motion`).
 Registration slides along shapes that do not pin it down -- a tanker's
-cylinder along its axis -- and an object is held where it was last seen.
-On the KITTI excerpt the tanker beside the car is 0.2-0.34 m off between
+cylinder along its axis -- and an object was held where it was last seen.
+On the KITTI excerpt the tanker beside the car is 0.22-0.34 m off between
 frames two apart in the first ten frames (the colour of its LiDAR points,
 projected into both images, agrees best that far along its axis), and
-the car ahead 0.4-0.5 m a frame pair once its track ends. The images then
+the truck cab beside it 0.34-0.50 m a frame pair once its track ended
+(``tests/bench/object_pose_check.py``). The images then
 see the object in other places than its Gaussians are, and stage 1 smears
 it.
 
@@ -93,15 +94,11 @@ class RigidPose:
 def correction_matrix(c) -> np.ndarray:
     """The 4x4 ``[R(w) | t]`` of one correction ``(tx, ty, tz, wx, wy, wz)``
     (numpy; the same rotation as :meth:`RigidPose.corrected`)."""
+    from ..physics.gaussian_ply import quaternion_to_matrix
     c = np.asarray(c, np.float64)
-    x, y, z = 0.5 * c[3:]
-    n = np.sqrt(1.0 + x * x + y * y + z * z)
-    x, y, z, w = x / n, y / n, z / n, 1.0 / n
-    R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                  [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                  [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    q = np.concatenate([[1.0], 0.5 * c[3:]])          # w x y z, normalised below
     out = np.eye(4)
-    out[:3, :3] = R
+    out[:3, :3] = quaternion_to_matrix((q / np.linalg.norm(q))[None])[0]
     out[:3, 3] = c[:3]
     return out
 
@@ -157,7 +154,8 @@ class ObjectPoseFit:
         fitted = np.concatenate([np.array(dr.detach(self.values[name, part]), np.float64).reshape(-1, 3)
                                  for part in PARTS], axis=1)
         out = fitted.copy()
-        others = [k for k in range(len(self.frames)) if k not in set(self.train)]
+        trained = set(self.train)
+        others = [k for k in range(len(self.frames)) if k not in trained]
         if others:
             out[others] = interpolate(self.train, fitted[self.train], np.asarray(others))
         return out
