@@ -12,6 +12,7 @@ import os
 import numpy as np
 import pytest
 import mitsuba as mi
+import drjit as dr
 
 from fit_scene import build
 from mi_invrgbl.fit.runner import FitConfig, run_fit
@@ -569,6 +570,28 @@ def test_small_budget_warning_from_the_measured_step():
     assert small_budget_warning(0, 3.0, 60.0, 40, 0.3) is None
 
 
+def test_stage1_leaves_stage2_time_where_the_fixed_costs_eat_the_budget():
+    # The KITTI excerpt at 8 minutes on 2 cores (40 frames, 0.296 s a step;
+    # its fixed costs took 190 s): stage 1 gives up part of its 240 s so
+    # that stage 2 keeps 40 % of what the fixed costs leave. The street at
+    # 8 minutes (24 frames, 0.173 s), KITTI at 30 minutes and a GPU keep
+    # the full share; at 2 minutes KITTI's fixed costs leave stage 2 nothing
+    # to keep, and stage 1 keeps its share.
+    from mi_invrgbl.fit.budget import (FIXED_STEPS_PER_FRAME, MIN_STAGE2_SECONDS,
+                                       STAGE1_OF_REST, stage1_seconds)
+    rest = 480 - 20 - FIXED_STEPS_PER_FRAME * 40 * 0.296
+    kitti8 = stage1_seconds(8, 20.0, 40, 0.296)
+    assert kitti8 == pytest.approx(STAGE1_OF_REST * rest) and 120 < kitti8 < 240
+    assert 480 - 20 - 190 - kitti8 > MIN_STAGE2_SECONDS   # what stage 2 is left
+    assert stage1_seconds(8, 5.0, 24, 0.173) == pytest.approx(240.0)
+    assert stage1_seconds(30, 20.0, 40, 0.308) == pytest.approx(900.0)
+    assert stage1_seconds(8, 20.0, 40, 0.02) == pytest.approx(240.0)
+    assert stage1_seconds(2, 20.0, 40, 0.296) == pytest.approx(60.0)
+    # Never more than the share.
+    values = [stage1_seconds(m, 20.0, 40, 0.296) for m in np.linspace(2, 60, 300)]
+    assert all(v <= 30 * m + 1e-9 for v, m in zip(values, np.linspace(2, 60, 300)))
+
+
 def test_validation_stop_returns_to_the_best_state():
     # A stage whose validation score peaks at iteration 2 and falls after:
     # it stops after PATIENCE evaluations without a gain and goes back to
@@ -969,3 +992,22 @@ def test_stage2_start_leaves_the_specular_light_out_of_the_albedo(scene_path, tm
     assert bias0 > 0.004            # the specular light on top: too bright
     assert abs(bias) < 0.003
     assert rmse < 0.7 * rmse0
+
+
+def test_pixel_rays_at_offsets_within_the_pixel():
+    # A pixel's far edge is its right neighbour's near edge, and no offset
+    # is the centre; eval's 2 x 2 scoring (fit.evaluate) relies on both.
+    from mi_invrgbl.fit.observations import camera_rays, pixel_rays
+    sensor = mi.load_dict({"type": "perspective", "fov": 60, "to_world": mi.ScalarTransform4f().look_at(
+        origin=[0, 0, 0], target=[0, 0, 1], up=[0, 1, 0]),
+        "film": {"type": "hdrfilm", "width": 8, "height": 4}})
+    w, h = 8, 4
+    idx = mi.UInt32([0, 9, 30])
+    centre = camera_rays(sensor, w, h)
+    a = pixel_rays(sensor, w, h, idx)
+    np.testing.assert_allclose(np.array(a.d), np.array(dr.gather(mi.Vector3f, centre.d, idx)), atol=1e-6)
+    one, zero = mi.Float([1.0, 1.0, 1.0]), mi.Float([0.0, 0.0, 0.0])
+    right_edge = pixel_rays(sensor, w, h, idx, (one, mi.Float([0.5, 0.5, 0.5])))
+    next_left = pixel_rays(sensor, w, h, idx + 1, (zero, mi.Float([0.5, 0.5, 0.5])))
+    np.testing.assert_allclose(np.array(right_edge.d), np.array(next_left.d), atol=1e-6)
+    assert np.abs(np.array(right_edge.d) - np.array(a.d)).max() > 1e-3

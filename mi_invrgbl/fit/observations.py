@@ -29,6 +29,7 @@ from ..errors import UserError
 from ..io.images import read_exr, read_mask
 from ..io.kitti import srgb_to_linear
 from ..scene.frames import Frames
+from .render import gather_rays
 
 
 class Masked:
@@ -88,6 +89,16 @@ class CameraObservation(Masked):
     def _size(self) -> int:
         return self.width * self.height
 
+    def pixel_rays(self, index, offset=None):
+        """Rays through the pixels ``index`` (numpy) at ``offset`` ((N, 2)
+        numpy in [0, 1) within each pixel; default: the centres, cached)."""
+        idx = mi.UInt32(np.asarray(index, np.uint32))
+        if offset is None:
+            return gather_rays(self.rays, idx)
+        return pixel_rays(self.sensor, self.width, self.height, idx,
+                          (mi.Float(offset[:, 0].astype(np.float32)),
+                           mi.Float(offset[:, 1].astype(np.float32))))
+
 
 @dataclass
 class LidarObservation(Masked):
@@ -122,10 +133,17 @@ def _find_sensor(scene, name):
 
 def camera_rays(sensor, width, height):
     """Rays through the pixel centres of a ``width`` x ``height`` grid over the film."""
-    idx = dr.arange(mi.UInt32, width * height)
-    row = idx // width
-    col = idx - row * width
-    pos = mi.Point2f((mi.Float(col) + 0.5) / width, (mi.Float(row) + 0.5) / height)
+    return pixel_rays(sensor, width, height, dr.arange(mi.UInt32, width * height))
+
+
+def pixel_rays(sensor, width, height, index, offset=None):
+    """Rays through the pixels ``index`` (flat, row-major; ``mi.UInt32``) of a
+    ``width`` x ``height`` grid, at ``offset`` within each pixel (a pair of
+    ``mi.Float`` in [0, 1); default: the centre)."""
+    row = index // width
+    col = index - row * width
+    u, v = (0.5, 0.5) if offset is None else offset
+    pos = mi.Point2f((mi.Float(col) + u) / width, (mi.Float(row) + v) / height)
     rays, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5), True)
     return mi.Ray3f(rays)
 

@@ -34,11 +34,10 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
-from ..physics.fields import BY_NAME
 from . import outputs
-from .budget import (TIMED, Budget, EarlyStop, Replan, overrun_report, plan_stage,
-                     position_lr_factor, probe_batch_scale, small_budget_warning,
-                     stage_progress, time_iterations)
+from .budget import (FIXED_STEPS_PER_FRAME, TIMED, Budget, EarlyStop, Replan, overrun_report,
+                     plan_stage, position_lr_factor, probe_batch_scale, small_budget_warning,
+                     stage1_seconds, stage_progress, time_iterations)
 from .checkpoint import checkpoint_path, fingerprint, load_checkpoint, save_checkpoint
 from .config import FitConfig  # noqa: F401  (the fit's options, imported from here by callers)
 from .evaluate import score_stage1, score_stage2
@@ -48,11 +47,10 @@ from .model_selection import (SUN_TRIAL_MARGIN, LightingChoice, LobeChoice, choo
                               choose_lighting, choose_render_samples, choose_sky_start, log_lighting,
                               sun_alternative)
 from .progress import SpeedErrorLog
-from .stage1 import Stage1
+from .stage1 import Stage1, moves_with_positions
 from .stage2 import FrozenScene, Stage2
 from .state import FitState
 from .steps import restore_optimizer
-from .variables import GaussianVariable, PoseVariable
 
 
 def run_fit(scene_path, config: FitConfig, log=print):
@@ -156,7 +154,12 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
 
         def set_scale(k):
             s1.batch_camera, s1.batch_lidar = base_camera * k, base_lidar * k
-        share = budget.share("stage 1")
+        share = stage1_seconds(budget.minutes, t - state.t_start, len(state.observations), spi)
+        if share < budget.share("stage 1"):
+            state.log("[fit] budget: stage 1 gets %.0f of its %.0f s, so that stage 2 keeps time "
+                      "after the steps between the stages (about %.0f s here)"
+                      % (share, budget.share("stage 1"),
+                         FIXED_STEPS_PER_FRAME * len(state.observations) * spi))
         probe = probe_batch_scale(s1.iteration, set_scale, start, share, spi)
         start += probe.iterations_run
         # Past MAX_ITERATIONS the batch grows only where the probe found
@@ -181,15 +184,10 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
         run.stop = ValidationStop(state, plan, started + share,
                                   lambda: score_stage1(state, state.validation_frames),
                                   keep=s1.snapshot)
-        position = BY_NAME["center"]
-
         def after_step(it, total):
             progress = stage_progress(it, total, time.perf_counter() - started, share)
             s1.after_step(it, total, progress)
-            # The objects' pose corrections settle with the positions they carry.
-            s1.opt.scale_learning_rates(position_lr_factor(progress),
-                                        lambda v: isinstance(v, PoseVariable)
-                                        or (isinstance(v, GaussianVariable) and v.field is position))
+            s1.opt.scale_learning_rates(position_lr_factor(progress), moves_with_positions)
         run.after_step = after_step
         run.replan = replanner(state, plan, start, started + share)
     elif budget is not None:

@@ -59,7 +59,8 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
        - Show the background as black instead of the sky. (Default: false)
 
     Gaussians (``gaussians`` or any ``ellipsoids`` shape) are alpha-blended
-    front to back along each camera ray. Each Gaussian's colour is the
+    front to back along each camera ray, in the order of their response
+    peaks along the ray (not of where the ray enters them). Each Gaussian's colour is the
     paper's physically based shading with its normal, RGB albedo and
     roughness (``cooktorrance``'s BRDF):
 

@@ -78,11 +78,12 @@ class LidarReturnIntegrator(hitlib.ad_integrator_base()):
 
     Intensity follows the paper, evaluated co-located (no light sampling):
     ``I = (rho_lidar + F0 tau^2 min(1, 2 cos^2) / (4 cos^2 (cos^2 (tau^2 - 1) + 1)^2))
-    P_e cos / (pi d^2)``. Gaussians are alpha-composited front to back; a
-    mesh behind them contributes with the remaining transmittance, its
-    reflectance taken from a ``cooktorrance`` BSDF's LiDAR albedo and roughness,
-    or, for any other BSDF, from the BSDF evaluated with light and viewer
-    co-located (``pi f_r(w, w)``, luminance of the RGB value).
+    P_e cos / (pi d^2)``. Gaussians are alpha-composited front to back (in
+    the order of their response peaks along the beam); a mesh behind them
+    contributes with the remaining transmittance, its reflectance taken from
+    a ``cooktorrance`` BSDF's LiDAR albedo and roughness, or, for any other
+    BSDF, from the BSDF evaluated with light and viewer co-located
+    (``pi f_r(w, w)``, luminance of the RGB value).
 
     Where the paper is loose, this does better: ``d`` and ``theta`` are taken
     at each Gaussian's response peak along the beam rather than at its centre

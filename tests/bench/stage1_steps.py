@@ -1,7 +1,8 @@
 """Stage 1 alone for a fixed number of steps: validation PSNR and where the error sits.
 
     python tests/bench/stage1_steps.py SCENE.xml OUT.png [--steps 200] [--lidar-batch N]
-        [--camera-only] [--only-frame K] [--set FIELD=VALUE ...] [--overwrite]
+        [--camera-only] [--only-frame K] [--set FIELD=VALUE ...] [--score-every 50]
+        [--position-decay] [--overwrite]
 
 Runs ``fit``'s own stage 1 (:class:`mi_invrgbl.fit.stage1.Stage1`, with its
 densification) on an imported scene for ``--steps`` iterations, without the
@@ -15,7 +16,10 @@ OUT.png is replaced only with ``--overwrite``.
 
 ``--camera-only`` drops the LiDAR terms; ``--only-frame K`` trains on frame
 K alone and scores it (how far one view gets with all the steps);
-``--set`` changes a :class:`~mi_invrgbl.fit.config.FitConfig` field. The
+``--set`` changes a :class:`~mi_invrgbl.fit.config.FitConfig` field;
+``--position-decay`` lets the centres' learning rate (and the object poses')
+decay over the steps as a budgeted fit's does (:func:`~mi_invrgbl.fit.budget.
+position_lr_factor`), so that long runs settle as ``fit --budget`` would. The
 README's "KITTI: far below replaying the recording" numbers come from this
 script. Held-out frames are never read.
 """
@@ -34,11 +38,12 @@ import numpy as np  # noqa: E402
 import drjit as dr  # noqa: E402
 
 from mi_invrgbl.eval.metrics import linear_to_srgb  # noqa: E402
+from mi_invrgbl.fit.budget import position_lr_factor  # noqa: E402
 from mi_invrgbl.fit.config import FitConfig  # noqa: E402
 from mi_invrgbl.fit.evaluate import score_stage1  # noqa: E402
 from mi_invrgbl.fit.init import load_state  # noqa: E402
 from mi_invrgbl.fit.render import camera_unlit  # noqa: E402
-from mi_invrgbl.fit.stage1 import Stage1  # noqa: E402
+from mi_invrgbl.fit.stage1 import Stage1, moves_with_positions  # noqa: E402
 
 
 def config_from(pairs) -> FitConfig:
@@ -75,6 +80,9 @@ def main(argv=None):
     ap.add_argument("--camera-only", action="store_true")
     ap.add_argument("--only-frame", type=int, default=-1)
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE")
+    ap.add_argument("--score-every", type=int, default=50, help="steps between validation scores")
+    ap.add_argument("--position-decay", action="store_true",
+                    help="decay the centres' learning rate over the steps as fit --budget does")
     ap.add_argument("--variant", default=None)
     ap.add_argument("--overwrite", action="store_true", help="replace an existing OUT.png")
     args = ap.parse_args(argv)
@@ -101,12 +109,16 @@ def main(argv=None):
         t = time.perf_counter()
         s1.iteration(it)
         s1.after_step(it, args.steps)
+        if args.position_decay:
+            s1.opt.scale_learning_rates(position_lr_factor(it / args.steps), moves_with_positions)
         dr.sync_thread()
         spent += time.perf_counter() - t
-        if it % 50 == 0 or it == args.steps:
+        if it % args.score_every == 0 or it == args.steps:
             print("step %d: validation PSNR %.2f dB (steps took %.0f s)" % (it, score(), spent),
                   flush=True)
     s1.pull()
+    print("validation PSNR at the pixel centres %.2f dB, 2x2 rays per pixel (as eval renders) "
+          "%.2f dB" % (score(), score_stage1(state, state.validation_frames, stride=1, grid=2)))
     rows = []
     for f in state.validation_frames[::2]:
         obs, pred, err, alpha = error_split(state, f, cfg)
