@@ -43,6 +43,8 @@ def test_every_flag_sets_its_field():
     (["--bounces", "-1"], "--bounces must be in 0..8"),
     (["--bounces", "9"], "--bounces must be in 0..8"),
     (["--sky-patterns", "0"], "--sky-patterns must be positive"),
+    (["--range-weight", "-1"], "--range-weight must be in 0.."),
+    (["--range-weight", "nan"], "--range-weight must be in 0.."),
 ])
 def test_bad_values_are_refused(args, message):
     with pytest.raises(UserError, match=message):

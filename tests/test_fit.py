@@ -815,6 +815,8 @@ def test_sun_trial_keeps_to_its_share_of_a_budget(scene_path, tmp_path, monkeypa
         return choice
 
     monkeypatch.setattr(runner, "choose_lighting", narrowly_rejected)
+    # (However little of stage 2's share this tiny budget leaves it.)
+    monkeypatch.setattr(runner.Budget, "sun_trial_fits", lambda self: True)
     budget = 0.75
     metrics = run_fit(scene_path, small_config(tmp_path, budget_minutes=budget, eval_every=5,
                                                sun_trial_iterations=100000), log=lambda *a: None)
@@ -827,6 +829,32 @@ def test_sun_trial_keeps_to_its_share_of_a_budget(scene_path, tmp_path, monkeypa
     assert 0 < t["sun_start_seconds"] < t["seconds"]
     assert t["seconds"] < limit + 10, (t, limit)
     assert metrics["iterations"]["stage 2"] >= t["iterations"]
+
+
+def test_no_sun_trial_where_stage2_has_less_than_its_share_left(scene_path, tmp_path, monkeypatch):
+    # The trial's start and scores cost the same however few its steps: on
+    # the KITTI excerpt at 8 minutes it took 134 s for one step per
+    # candidate and left stage 2 nothing. Where stage 2 has less than its
+    # share left the sun test's decision stands and stage 2 gets the time.
+    import time
+    from mi_invrgbl.fit import runner
+    from mi_invrgbl.fit.budget import Budget, OUTPUT_RESERVE
+    now = time.perf_counter()
+    late = Budget(8.0, now - (480.0 - 100.0))       # 100 s left
+    early = Budget(8.0, now - (480.0 - 300.0))      # 300 s left
+    assert not late.sun_trial_fits() and early.sun_trial_fits()
+    assert late.stage2_left() == pytest.approx(100.0 - OUTPUT_RESERVE * 480.0, abs=1.0)
+
+    monkeypatch.setattr(runner, "choose_lighting", narrow_sun_rejection(runner.choose_lighting))
+    monkeypatch.setattr(runner.Budget, "sun_trial_fits", lambda self: False)
+    trials = []
+    monkeypatch.setattr(runner, "sun_trial", lambda *a, **k: trials.append(a) or (_ for _ in ()).throw(
+        AssertionError("the trial ran")))
+    metrics = run_fit(scene_path, small_config(tmp_path, budget_minutes=0.75, eval_every=5,
+                                               sun_trial_iterations=50), log=lambda *a: None)
+    sun = metrics["selection"]["sun"]
+    assert not trials and sun["trial"]["skipped"] is True and sun["use_sun"] is False
+    assert metrics["iterations"]["stage 2"] > 0
 
 
 def test_a_sun_trial_that_takes_every_stage2_step_is_logged_as_stage2(scene_path, tmp_path,

@@ -29,6 +29,9 @@ FLAGS = (
     ("--lidar-columns", "lidar_columns", "LiDAR azimuth columns used per scan", {}),
     ("--batch", "batch_rays", "stage-1 camera rays per batch", {}),
     ("--lidar-batch", "lidar_batch_rays", "stage-1 LiDAR beams per batch", {}),
+    ("--range-weight", "stage1_range",
+     "weight of stage 1's LiDAR range term (L1 in metres; 0: the LiDAR's ranges do not pull "
+     "the geometry)", {}),
     ("--samples", "samples", "sky samples M per Gaussian while fitting", {}),
     ("--sky-patterns", "sky_patterns",
      "stage 2 turns the sky directions to one of this many patterns each step, so the albedo "
@@ -152,6 +155,8 @@ def config_from_args(args):
     if not values["budget_minutes"] >= 0:
         raise UserError("--budget must be a number of minutes >= 0 (got %r)"
                         % values["budget_minutes"])
+    if not 0 <= values["stage1_range"] <= MAX_WEIGHT:
+        raise UserError("--range-weight must be in 0..%g (got %r)" % (MAX_WEIGHT, values["stage1_range"]))
     render_samples = str(values["render_samples"]).strip().lower()
     if render_samples != "auto" and not (render_samples.isdigit() and int(render_samples) >= 1):
         raise UserError("--render-samples must be 'auto' or a positive number (got %r)"

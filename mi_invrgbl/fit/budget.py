@@ -235,6 +235,10 @@ def time_iterations(step, first, count=TIMED):
     return (time.perf_counter() - t) / count
 
 
+#: Share of the budget kept for the outputs after stage 2.
+OUTPUT_RESERVE = 0.05
+
+
 @dataclass
 class Budget:
     """The wall-time budget of one fit, counted from ``t_start``."""
@@ -250,6 +254,21 @@ class Budget:
 
     def left(self):
         return self.deadline - time.perf_counter()
+
+    def stage2_left(self):
+        """Seconds left for stage 2: what remains but the outputs' reserve
+        (:data:`OUTPUT_RESERVE` of the budget)."""
+        return self.left() - OUTPUT_RESERVE * 60.0 * self.minutes
+
+    def sun_trial_fits(self) -> bool:
+        """Whether stage 2 still has its share (:data:`SHARES`): only then
+        is a third of it spent on the sun trial. The trial's start (the
+        sun's shading from every direction the lighting kept) and its two
+        validation scores cost about a minute each way on the KITTI excerpt
+        on 2 cores, whatever its iterations: an 8-minute fit whose stage 2
+        had 100 s left ran one trial iteration per candidate in 134 s and
+        left stage 2 none."""
+        return self.stage2_left() >= self.share("stage 2")
 
 
 #: A fit more than this fraction past its budget says where the time went.

@@ -35,9 +35,9 @@ import drjit as dr
 import mitsuba as mi
 
 from . import outputs
-from .budget import (FIXED_STEPS_PER_FRAME, TIMED, Budget, EarlyStop, Replan, overrun_report,
-                     plan_stage, position_lr_factor, probe_batch_scale, small_budget_warning,
-                     stage1_seconds, stage_progress, time_iterations)
+from .budget import (FIXED_STEPS_PER_FRAME, OUTPUT_RESERVE, TIMED, Budget, EarlyStop, Replan,
+                     overrun_report, plan_stage, position_lr_factor, probe_batch_scale,
+                     small_budget_warning, stage1_seconds, stage_progress, time_iterations)
 from .checkpoint import checkpoint_path, fingerprint, load_checkpoint, save_checkpoint
 from .config import FitConfig  # noqa: F401  (the fit's options, imported from here by callers)
 from .evaluate import score_stage1, score_stage2
@@ -91,6 +91,12 @@ def run_fit(scene_path, config: FitConfig, log=print):
             # (A fit resumed from stage 2's first checkpoint keeps the test's
             # decision: the trial needs the lighting choice of this run.)
             alternative = sun_alternative(state, lighting)
+        if alternative is not None and budget is not None and not budget.sun_trial_fits():
+            state.log("[fit] sun trial skipped: stage 2 has %.0f s of its %.0f s share left; "
+                      "the sun test's decision stands" % (budget.stage2_left(), budget.share("stage 2")))
+            state.selection["sun"]["trial"] = {"skipped": True,
+                                               "stage2_seconds_left": round(budget.stage2_left(), 1)}
+            alternative = None
         if alternative is not None:
             # Without a budget the trial's iterations are part of the stage's
             # count, so it never runs more than the stage would.
@@ -116,7 +122,7 @@ def run_fit(scene_path, config: FitConfig, log=print):
         t = time.perf_counter()
         state.selection["samples"] = choose_render_samples(
             state, stage2, frozen,
-            deadline=None if budget is None else budget.deadline - 0.05 * 60 * budget.minutes)
+            deadline=None if budget is None else budget.deadline - OUTPUT_RESERVE * 60 * budget.minutes)
         state.times["samples selection"] = time.perf_counter() - t
         log_choices(state)
         checkpoint("done", last)
@@ -233,7 +239,7 @@ def fit_materials(state: FitState, stage2, start, checkpoint, budget=None, fresh
         # Stage 2 takes what is left: its validation PSNR stops it where
         # more steps stop paying (KITTI at 30 minutes: at step 940 of 1130,
         # 500 s before the budget's end).
-        reserve = state.config.lobe_iterations * spi + 0.05 * 60 * budget.minutes
+        reserve = state.config.lobe_iterations * spi + OUTPUT_RESERVE * 60 * budget.minutes
         seconds = max(0.0, budget.left() - reserve)
         plan = plan_stage("stage 2", seconds, spi, done=start, batched=False)
         if seconds < budget.share("stage 2"):
