@@ -301,10 +301,17 @@ def stage1_seconds(minutes, elapsed, frames, seconds_per_step) -> float:
     step's ``seconds_per_step``; ``elapsed`` seconds already spent) would
     leave stage 2 too little (:data:`STAGE1_OF_REST`)."""
     share = SHARES["stage 1"] * 60.0 * minutes
-    rest = 60.0 * minutes - elapsed - FIXED_STEPS_PER_FRAME * frames * seconds_per_step
+    rest = 60.0 * minutes - elapsed - fixed_costs(frames, seconds_per_step)
     if (1.0 - STAGE1_OF_REST) * rest < MIN_STAGE2_SECONDS:
         return share
     return min(share, STAGE1_OF_REST * rest)
+
+
+def fixed_costs(frames, seconds_per_step) -> float:
+    """Estimated seconds of the steps outside the two stages: ``frames``
+    frames at :data:`FIXED_STEPS_PER_FRAME` configured stage-1 steps of
+    ``seconds_per_step`` each."""
+    return FIXED_STEPS_PER_FRAME * frames * seconds_per_step
 
 
 def over_budget(minutes, wall_s) -> bool:
@@ -339,7 +346,7 @@ def small_budget_warning(minutes, elapsed, stage1_share, frames, seconds_per_ste
     cannot hold the steps no budget shrinks: ``elapsed`` seconds spent so
     far, stage 1's share, and an estimate of the rest from ``frames`` and a
     configured stage-1 step's ``seconds_per_step``. None where it fits."""
-    rest = FIXED_STEPS_PER_FRAME * frames * seconds_per_step
+    rest = fixed_costs(frames, seconds_per_step)
     expected = elapsed + stage1_share + rest
     if not over_budget(minutes, expected):
         return None

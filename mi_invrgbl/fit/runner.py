@@ -35,9 +35,10 @@ import drjit as dr
 import mitsuba as mi
 
 from . import outputs
-from .budget import (FIXED_STEPS_PER_FRAME, OUTPUT_RESERVE, TIMED, Budget, EarlyStop, Replan,
+from .budget import (OUTPUT_RESERVE, TIMED, Budget, EarlyStop, Replan,
                      overrun_report, plan_stage, position_lr_factor, probe_batch_scale,
-                     small_budget_warning, stage1_seconds, stage_progress, time_iterations)
+                     small_budget_warning, stage1_seconds, stage_progress, time_iterations,
+                     fixed_costs)
 from .checkpoint import checkpoint_path, fingerprint, load_checkpoint, save_checkpoint
 from .config import FitConfig  # noqa: F401  (the fit's options, imported from here by callers)
 from .evaluate import score_stage1, score_stage2
@@ -165,7 +166,7 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
             state.log("[fit] budget: stage 1 gets %.0f of its %.0f s, so that stage 2 keeps time "
                       "after the steps between the stages (about %.0f s here)"
                       % (share, budget.share("stage 1"),
-                         FIXED_STEPS_PER_FRAME * len(state.observations) * spi))
+                         fixed_costs(len(state.observations), spi)))
         probe = probe_batch_scale(s1.iteration, set_scale, start, share, spi)
         start += probe.iterations_run
         # Past MAX_ITERATIONS the batch grows only where the probe found
