@@ -101,6 +101,17 @@ def test_fitted_scene_renders_in_mitsuba(fitted):
     assert np.isfinite(scan).all() and (scan[..., 2] > 0).mean() > 0.3
 
 
+def test_fitted_scene_blends_as_many_gaussians_as_the_fit(fitted):
+    # Gaussians behind the fit's max_hits never got a gradient: the fitted
+    # scenes must not draw them (the plugins' defaults are 64 and 1e-3).
+    out, _ = fitted
+    cfg = small_config(out)
+    for name in ("scene.xml", "scene_lidar.xml"):
+        integ = mi.load_file(str(out / name)).integrator()
+        assert integ.max_hits == cfg.max_hits != 64, name
+        assert integ.min_transmittance == pytest.approx(cfg.min_transmittance), name
+
+
 def test_fit_lowers_error(fitted):
     out, _ = fitted
     import csv

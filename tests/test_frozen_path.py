@@ -127,7 +127,7 @@ def test_camera_forward_with_the_fits_hit_threshold(scene_path, tmp_path):
         colour = state.camera_integrator.shade_gaussian_hits(lighting, nodes, frame.camera.rays, fh, g)[0]
         c_max = rows(colour, 3).max(axis=0)
     dropped = np.maximum(ref[:, 12] - rows(fast["alpha"], 1)[:, 0], 0.0)
-    assert dropped.max() < 24 * 1e-4 + 1e-5        # at most max_hits hits of weight < 1e-4
+    assert dropped.max() < state.config.max_hits * 1e-4 + 1e-5  # at most max_hits hits of weight < 1e-4
     bound = dropped[:, None] * c_max[None, :] + ROUNDING * np.abs(ref[:, :3]).max()
     err = np.abs(rows(fast["rgb"], 3) - ref[:, :3])
     assert np.all(err <= bound), "worst excess %.3g" % (err - bound).max()

@@ -44,17 +44,25 @@ def fitted_xml(ctx, lidar=False):
         for shape in doc.root.iter("shape"):
             if shape.get("type") == "gaussians" and shape.get("id") in first:
                 xml.set_child(shape, xml.transform(first[shape.get("id")]))
+    # The fitted scene blends as many Gaussians per ray as the fit did: the
+    # ones behind the fit's max_hits (or past its transmittance cut) never
+    # got a gradient. Drawn with the plugins' larger defaults (64, 1e-3),
+    # the KITTI excerpt's 30-minute fit scored 19.63 dB on the held-out
+    # frames, with the fit's own (24, 1e-2) 19.80 dB (`eval`).
+    traversal = dict(max_hits=int(ctx.config.max_hits),
+                     min_transmittance=float(ctx.config.min_transmittance))
     if lidar:
         r = ctx.response
         lobe = ctx.selection.get("lidar_lobe", {}).get("model", "pbr")
         integ = xml.integrator("lidar_return", model=lobe,
                                range_exponent=float(r.range_exponent[0]),
                                angle_exponent=float(r.angle_exponent[0]),
-                               beam_gains=xml.numbers_text(np.array(r.beam_gains)))
+                               beam_gains=xml.numbers_text(np.array(r.beam_gains)),
+                               **traversal)
     else:
         samples = ctx.selection.get("samples", {}).get("samples", ctx.config.samples)
         integ = xml.integrator("invrgbl", samples=int(samples), bounces=int(ctx.config.bounces),
-                               shadowing=str(ctx.config.shadowing))
+                               shadowing=str(ctx.config.shadowing), **traversal)
         if ctx.sun_visibility_learned:
             # The fitted v_sun holds for the fitted sun; relight/night switch to trace.
             xml.set_child_param(integ, "string", "sun_visibility", "attribute")
