@@ -150,6 +150,46 @@ def test_grad_rgb_saturated_channels():
     assert above.any() and not g[above].any() and g[~above].all()
 
 
+def test_srgb_encode_matches_eval_and_stays_differentiable():
+    # The loss's sRGB curve is eval's (PSNR is scored through it), and its
+    # gradient is finite at 0 and across the curve's kink.
+    from mi_invrgbl.eval.metrics import linear_to_srgb
+    x = np.concatenate([[0.0, 1e-6, 0.0031308, 0.00314, 0.5, 1.0, 1.7], RNG.uniform(0, 1, 40)])
+    v = mi.Float(x.astype(np.float32))
+    dr.enable_grad(v)
+    y = L.srgb_encode(v)
+    dr.backward(dr.sum(y))
+    np.testing.assert_allclose(np.array(y), linear_to_srgb(x), rtol=2e-5, atol=2e-6)
+    g = np.array(dr.grad(v))
+    assert np.isfinite(g).all() and (g > 0).all()
+    assert g[0] == pytest.approx(12.92)
+    smooth = x > 0.004
+    fd = (linear_to_srgb(x[smooth] + 1e-6) - linear_to_srgb(x[smooth] - 1e-6)) / 2e-6
+    np.testing.assert_allclose(g[smooth], fd, rtol=2e-3)
+
+
+def test_rgb_loss_in_srgb():
+    # The same loss, compared through the sRGB curve; saturated targets stay
+    # a lower bound (judged on the linear target), dark pixels and 0 finite.
+    from mi_invrgbl.eval.metrics import linear_to_srgb
+    n = 30
+    tgt = np.where(np.arange(n) % 3 == 0, 1.0, RNG.uniform(0.0, 0.8, n))
+    tgt[1] = 0.0
+    x = np.clip(tgt + RNG.uniform(-0.3, 0.3, n), 0.01, None)
+    x[np.arange(n) % 3 == 0] = np.where(np.arange(n)[np.arange(n) % 3 == 0] % 2 == 0, 1.2, 0.7)
+    enc = lambda y: np.asarray(linear_to_srgb(np.maximum(y, 0.0)), np.float64)  # noqa: E731
+    ref = lambda y: np.mean(np.where((tgt >= L.SATURATED) & (y > tgt), 0.0,  # noqa: E731
+                                     enc(y) - enc(tgt)) ** 2)
+    val, g = dr_grad(lambda v: L.rgb_loss(v, mi.Float(tgt.astype(np.float32)), space="srgb"),
+                     x, lambda v: v)
+    check(val, g, ref, x, rtol=5e-3, atol=1e-5)
+    val0, g0 = dr_grad(lambda v: L.rgb_loss(v, mi.Float(np.zeros(4, np.float32)), space="srgb"),
+                       np.zeros(4), lambda v: v)
+    assert val0 == 0.0 and np.isfinite(g0).all()
+    with pytest.raises(ValueError, match="space"):
+        L.rgb_loss(mi.Float([0.5]), mi.Float([0.4]), space="log")
+
+
 def test_grad_lidar_range_raydrop():
     n = 20
     x = RNG.uniform(0.05, 0.95, n)

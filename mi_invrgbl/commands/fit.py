@@ -42,6 +42,9 @@ FLAGS = (
     ("--shadowing", "shadowing",
      "shadowing-masking term of the specular lobe: Smith's GGX term, or the paper's V-cavity "
      "(about twice the specular near grazing angles)", {"choices": ("smith", "vcavity")}),
+    ("--rgb-space", "rgb_space",
+     "colour space of the camera loss in both stages: sRGB (what PSNR and the eye compare) or "
+     "linear (the paper's)", {"choices": ("srgb", "linear")}),
     ("--render-samples", "render_samples",
      "sky samples M written into the fitted scene.xml: 'auto' (the smallest of 4/8/16/32, "
      "up to --samples, within 0.1 dB of the best validation PSNR) or a number", {}),

@@ -128,7 +128,19 @@ def _pair(pred, target, name):
 SATURATED = 0.99
 
 
-def rgb_loss(pred, target, mask=None):
+#: Colour spaces the camera loss can compare in (:func:`rgb_loss`).
+RGB_SPACES = ("linear", "srgb")
+
+
+def srgb_encode(x):
+    """The sRGB curve on linear values, differentiable everywhere: the power
+    branch reads its input clamped to where it is taken, so that its infinite
+    slope at 0 never meets the (masked) gradient of the linear branch."""
+    power = 1.055 * dr.power(dr.maximum(x, 0.0031308), 1.0 / 2.4) - 0.055
+    return dr.select(x <= 0.0031308, 12.92 * x, power)
+
+
+def rgb_loss(pred, target, mask=None, space="linear"):
     r"""Camera fidelity :math:`\mathcal{L}_{rgb} = \Vert\hat C - C\Vert_2^2` (paper Eq. 6), as a mean.
 
     ``pred`` / ``target``: linear RGB (Color3f per pixel or interleaved Float);
@@ -144,8 +156,13 @@ def rgb_loss(pred, target, mask=None):
     this keeps the lower bound they give).
     """
     pred, target = _pair(pred, target, "rgb_loss")
+    saturated = dr.detach(target) >= SATURATED
+    if space == "srgb":
+        pred, target = srgb_encode(pred), srgb_encode(target)
+    elif space != "linear":
+        raise ValueError("rgb_loss: space must be one of %s (got %r)" % (RGB_SPACES, space))
     diff = pred - target
-    diff = dr.select((dr.detach(target) >= SATURATED) & (diff > 0), 0.0, diff)
+    diff = dr.select(saturated & (diff > 0), 0.0, diff)
     return _masked_mean(dr.square(diff), mask)
 
 
