@@ -74,6 +74,8 @@ class Row:
     #: Held-out PSNR as trained (``log.csv``): stage 1's best, stage 2's last.
     stage1_peak_psnr: float | None = None
     stage2_end_psnr: float | None = None
+    #: What the row's run changed, for rows kept in docs/bench (not tabulated).
+    note: str = ""
 
     @property
     def stage2_gain(self):
