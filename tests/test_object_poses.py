@@ -285,6 +285,7 @@ def test_fit_outputs_place_objects_at_their_corrected_poses(tiny_scene, tmp_path
     (objects load at frame 0's pose) and its frames.json -- puts each
     object where the fit had it at every frame."""
     import shutil
+    from mi_invrgbl.fit.config import FitConfig
     from mi_invrgbl.fit.outputs import fitted_xml
     from mi_invrgbl.scene.frames import Frames
     from mi_invrgbl.scene.posing import set_frame
@@ -297,7 +298,7 @@ def test_fit_outputs_place_objects_at_their_corrected_poses(tiny_scene, tmp_path
     ctx = SimpleNamespace(scene_path=str(root / "scene.xml"), params={"sky": mi.Float(np.zeros(27))},
                           sky_key="sky", sh_order=2, sky_emitter=SimpleNamespace(order=2),
                           use_sun=False, selection={}, sun_visibility_learned=False,
-                          config=SimpleNamespace(samples=8, bounces=1, shadowing="smith"),
+                          config=FitConfig(samples=8),
                           object_poses=fit, frames=frames)
     out = tmp_path / "fit"
     out.mkdir()
