@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import mitsuba as mi
 
+from mi_invrgbl.eval.scoring import EVAL_SPP
 from mi_invrgbl.physics.gaussian_ply import GaussianCloud, write_ply
 from mi_invrgbl.io.images import write_exr, write_png
 from mi_invrgbl.scene.frames import Frames, CAMERA_FLIP
@@ -187,7 +188,8 @@ def fit_dir(tmp_path_factory):
         params = mi.traverse(scene)
         cam = next(s for s in scene.sensors() if s.id() == "camera_%04d" % i)
         lidar = next(s for s in scene.sensors() if s.id() == "lidar_%04d" % i)
-        img = np.array(mi.render(scene, sensor=cam), np.float32)
+        # At eval's own sample count, so that eval's render repeats this one.
+        img = np.array(mi.render(scene, sensor=cam, spp=EVAL_SPP), np.float32)
         names = [f.name for f in cam.film().bitmap().struct_()]
         write_png(str(root / "observations" / ("image_%04d.png" % i)), img[..., :3])
         scan = np.array(mi.render(scene, sensor=lidar, integrator=lidar_integ), np.float32)
@@ -219,7 +221,7 @@ def fit_dir(tmp_path_factory):
         params["sky.sun_direction"] = mi.Vector3f(*[float(v) for v in SUN_B_SCENE])
         params["sky.sun_irradiance"] = mi.Color3f(*TIME_B["sun_irradiance"])
         params.update()
-        relit = np.array(mi.render(scene, sensor=cam), np.float32)[..., :3]
+        relit = np.array(mi.render(scene, sensor=cam, spp=EVAL_SPP), np.float32)[..., :3]
         write_exr(str(gt / "time_b" / ("%06d.exr" % i)), relit, ["R", "G", "B"])
     (root / "frame.xml").unlink()
     return root
@@ -247,6 +249,7 @@ def test_eval_perfect_on_own_renders(fit_dir, capsys):
     assert m["gt_coverage"] > 0.99
     assert "baseline_intensity_rmse" in m and m["baseline_intensity_rmse"] >= 0
     assert res["lidar_response"].endswith("scene_lidar.xml")
+    assert res["camera_spp"] == EVAL_SPP > 4     # not the imported scenes' 4 spp
 
 
 def test_eval_raw_point_score_and_full_baseline(fit_dir, capsys):

@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..eval.inputs import resolve_inputs
-from ..eval.scoring import evaluate, format_table, write_metrics
+from ..eval.scoring import EVAL_SPP, evaluate, format_table, write_metrics
 
 
 def add_parser(sub):
@@ -21,7 +21,9 @@ def add_parser(sub):
                    help="held-out (default), all, A:B (frame indices, B excluded) or a list 3,8")
     p.add_argument("-o", "--output", default=None,
                    help="metrics file (default: metrics.json next to the scene)")
-    p.add_argument("--spp", type=int, default=0, help="camera samples per pixel (default: the sensor's)")
+    p.add_argument("--spp", type=int, default=EVAL_SPP,
+                   help="camera samples per pixel (default %d: fewer add sampling noise to the "
+                        "scores; 0: the sensor's own)" % EVAL_SPP)
     p.add_argument("--samples", type=int, default=None,
                    help="sky samples M of the invrgbl integrator (default: the scene's)")
     p.add_argument("--lidar-model", choices=("pbr", "lambertian"), default=None,
