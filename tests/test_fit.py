@@ -349,6 +349,17 @@ def test_checkpoint_predating_an_option_resumes_with_its_value_then():
     assert fp_default["config"]["lidar_batch_rays"] == 1024
 
 
+def test_checkpoint_predating_rgb_space_was_fitted_in_linear_light():
+    from mi_invrgbl.fit.checkpoint import check_fingerprint
+    now = {"scene": "s", "frames": "f", "gaussians": {"background": 3},
+           "config": FitConfig().model_fields()}
+    old = {**now, "config": {k: v for k, v in now["config"].items() if k != "rgb_space"}}
+    assert now["config"]["rgb_space"] == "srgb"
+    with pytest.raises(UserError, match="rgb_space"):
+        check_fingerprint("ckpt", old, now)                  # linear then, sRGB now
+    check_fingerprint("ckpt", old, {**now, "config": FitConfig(rgb_space="linear").model_fields()})
+
+
 def test_stage1_score_on_a_pixel_subset(scene_path, tmp_path):
     """Stage 1's progress score on every n-th counted pixel estimates the full
     frame's PSNR, and scores the same pixels each time."""

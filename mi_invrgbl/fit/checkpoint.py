@@ -45,6 +45,9 @@ def fingerprint(ctx: FitState) -> dict:
 
 #: Options a checkpoint may predate whose value then was another option's.
 PREDATED = {"lidar_batch_rays": "batch_rays"}
+#: Options a checkpoint may predate whose value then was not today's default
+#: (the camera loss compared in linear light before ``rgb_space`` existed).
+PREDATED_VALUES = {"rgb_space": "linear"}
 
 
 def check_fingerprint(path, saved, current):
@@ -59,8 +62,8 @@ def check_fingerprint(path, saved, current):
     # (PREDATED) the value another option gave it.
     defaults = FitConfig().model_fields()
     was = saved.get("config", {})
-    then = {k: was[PREDATED[k]] if k in PREDATED and PREDATED[k] in was else defaults.get(k)
-            for k in current["config"]}
+    then = {k: was[PREDATED[k]] if k in PREDATED and PREDATED[k] in was
+            else PREDATED_VALUES.get(k, defaults.get(k)) for k in current["config"]}
     options = sorted(k for k in current["config"]
                      if json.dumps(was.get(k, then[k])) != json.dumps(current["config"][k]))
     if options:
