@@ -37,6 +37,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..eval.metrics import SRGB_A, SRGB_GAMMA, SRGB_KNEE, SRGB_SLOPE
+
 #: Default bandwidth of the bilateral weight of L_rgb->lidar. The paper leaves
 #: sigma unspecified. Albedos live in [0, 1]; with sigma = 0.1 an RGB albedo
 #: step of 0.1 (a clearly visible material edge) cuts the coupling to
@@ -136,8 +138,8 @@ def srgb_encode(x):
     """The sRGB curve on linear values, differentiable everywhere: the power
     branch reads its input clamped to where it is taken, so that its infinite
     slope at 0 never meets the (masked) gradient of the linear branch."""
-    power = 1.055 * dr.power(dr.maximum(x, 0.0031308), 1.0 / 2.4) - 0.055
-    return dr.select(x <= 0.0031308, 12.92 * x, power)
+    power = (1 + SRGB_A) * dr.power(dr.maximum(x, SRGB_KNEE), 1.0 / SRGB_GAMMA) - SRGB_A
+    return dr.select(x <= SRGB_KNEE, SRGB_SLOPE * x, power)
 
 
 def rgb_loss(pred, target, mask=None, space="linear"):
