@@ -49,11 +49,18 @@ def score_stage1(state, frames, stride=None, grid=1):
     return float(np.mean(vals)) if vals else float("nan")
 
 
-def score_stage2(stage2, frames, vals=None, **render):
+def score_stage2(stage2, frames, vals=None, refresh=False, **render):
     """(PSNR of the shaded images, LiDAR intensity RMSE) on ``frames`` from the
     frozen caches. ``vals`` (default: the stage's current variables) and
-    ``render`` (e.g. ``samples``, ``caches``) go to :meth:`Stage2.render_frame`."""
+    ``render`` (e.g. ``samples``, ``caches``) go to :meth:`Stage2.render_frame`.
+
+    With ``refresh`` the lighting caches first follow the normals the stage
+    has learned (:meth:`Stage2.refresh_lighting`): the score is then the
+    fitted scene's as the integrator renders it. The scores that choose
+    (early stopping) refresh; a score for the log alone need not pay for it."""
     ps, errs, counts = [], 0.0, 0
+    if refresh and vals is None and "caches" not in render:
+        stage2.refresh_lighting()
     with dr.suspend_grad():
         vals = stage2.values() if vals is None else vals
         for f in frames:

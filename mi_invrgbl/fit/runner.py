@@ -49,7 +49,7 @@ from .model_selection import (SUN_TRIAL_MARGIN, LightingChoice, LobeChoice, choo
                               sun_alternative)
 from .progress import SpeedErrorLog
 from .stage1 import Stage1, moves_with_positions
-from .stage2 import FrozenScene, Stage2
+from .stage2 import RETRACE_TURN_DEG, FrozenScene, Stage2
 from .state import FitState
 from .steps import restore_optimizer
 
@@ -225,7 +225,11 @@ def fit_materials(state: FitState, stage2, start, checkpoint, budget=None, fresh
     ``start`` iterations of the sun trial, so a budget is planned here."""
     fresh = start == 0 if fresh is None else fresh
     total = planned(state, "stage 2", state.config.stage2_iterations)
-    run = StageRun("stage 2", stage2.iteration, lambda: score_stage2(stage2, state.held_out_frames),
+    # The log's held-out score re-traces the turned normals' sky visibility
+    # only where no validation score does (an unbudgeted fit): a budgeted
+    # stage scores its validation frames, with the refresh, just before.
+    run = StageRun("stage 2", stage2.iteration, lambda: score_stage2(
+        stage2, state.held_out_frames, refresh=budget is None),
                    lambda name, it: checkpoint(name, it, stage2.opt.adam))
     if budget is not None and fresh:
         record_point(state, run, start)   # before the timed iterations move it
@@ -250,12 +254,15 @@ def fit_materials(state: FitState, stage2, start, checkpoint, budget=None, fresh
         state.selection.setdefault("budget", {})["stage 2"] = plan.as_dict()
         total = plan.iterations
         run.stop = ValidationStop(state, plan, t + seconds, lambda: validation_score(
-            *score_stage2(stage2, state.validation_frames)), keep=stage2.snapshot)
+            *score_stage2(stage2, state.validation_frames, refresh=True)), keep=stage2.snapshot)
         run.replan = replanner(state, plan, start, t + seconds)
     if total > start:
         last = train(state, run, start, total)
         if isinstance(run.stop, ValidationStop):
             run.stop.restore_best(stage2.restore, last, "stage 2")
+        stage2.refresh_lighting()
+        state.selection["lighting_retraced"] = dict(stage2.retraced, seconds=round(
+            stage2.retraced["seconds"], 2), turn_deg=RETRACE_TURN_DEG)
         return last
     if fresh and start > 0:
         # The sun trial ran every iteration the stage had (an unbudgeted

@@ -77,6 +77,13 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
     cosine-weighted quadrature (``pi / M`` weight), and every point or spot
     light of the scene lights the Gaussians with its ``1/d^2`` falloff.
 
+    The visibilities are traced once and cached while the geometry and the
+    lights stay put. The ``w_i`` are cosine-weighted about each Gaussian's
+    normal, so a render after normals were edited (``mi.traverse``)
+    re-traces the sky directions of the Gaussians whose normal changed
+    (:func:`~mi_invrgbl.physics.lighting.retrace_turned`) and renders as a
+    fresh load of the edited scene would.
+
     A mesh behind the Gaussians (or alone) is shaded with its own BSDF (any
     Mitsuba BSDF) by direct lighting: one emitter sample and one BSDF sample
     per camera sample, combined by multiple importance sampling; shadow rays
@@ -221,7 +228,7 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
         g = hitlib.eval_gaussian_hits(nodes, rays, hit_list)
         w, t_after = hitlib.blend_weights(g)
         if nodes:
-            lighting = GaussianLighting(scene, nodes, self.samples, self.cache,
+            lighting = GaussianLighting(scene, nodes, self.samples, self.cache, follow_normals=True,
                                         trace_sun=self.sun_visibility == "trace",
                                         bounces=self.bounces)
             colour, albedo, n, tau, rho_l = self.shade_gaussian_hits(lighting, nodes, rays, hit_list, g)
