@@ -772,6 +772,10 @@ def test_budget_sets_iterations_and_stops_in_time(scene_path, tmp_path):
     # The iteration counts came from the budget, not --stage1/--stage2 (10 and 24 here).
     assert plans["stage 1"]["iterations"] != 10
     assert metrics["interrupted"] is False and np.isfinite(metrics["heldout_psnr"])
+    # Stage 2's lighting followed its normals before its validation scores.
+    retraced = metrics["selection"]["lighting_retraced"]
+    assert retraced["refreshes"] >= 1 and retraced["turn_deg"] > 0
+    assert retraced["gaussians"] >= 0 and retraced["seconds"] >= 0
 
 
 def test_stage2_start_is_restored_exactly(scene_path, tmp_path):

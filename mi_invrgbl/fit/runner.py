@@ -260,9 +260,7 @@ def fit_materials(state: FitState, stage2, start, checkpoint, budget=None, fresh
         last = train(state, run, start, total)
         if isinstance(run.stop, ValidationStop):
             run.stop.restore_best(stage2.restore, last, "stage 2")
-        stage2.refresh_lighting()
-        state.selection["lighting_retraced"] = dict(stage2.retraced, seconds=round(
-            stage2.retraced["seconds"], 2), turn_deg=RETRACE_TURN_DEG)
+        follow_normals(state, stage2)
         return last
     if fresh and start > 0:
         # The sun trial ran every iteration the stage had (an unbudgeted
@@ -271,7 +269,17 @@ def fit_materials(state: FitState, stage2, start, checkpoint, budget=None, fresh
         # rather than ending at stage 1.
         record_point(state, run, start)
         state.iterations["stage 2"] = start
+    follow_normals(state, stage2)
     return max(start, total)
+
+
+def follow_normals(state: FitState, stage2):
+    """Stage 2's end: its lighting caches follow the normals it kept (what the
+    outputs, the lobe and sample-count choices and the fitted scene see),
+    and ``metrics.json`` records what the refreshes cost."""
+    stage2.refresh_lighting()
+    state.selection["lighting_retraced"] = dict(stage2.retraced, seconds=round(
+        stage2.retraced["seconds"], 2), turn_deg=RETRACE_TURN_DEG)
 
 
 def replanner(state: FitState, plan, first, deadline):

@@ -320,7 +320,9 @@ def retrace_turned(scene, nodes, cache: LightingCache, samples, pattern=0, bounc
         else:
             new_vis = transmittance(scene, origins, dirs, mi.Float(dr.inf), nodes)
         # A new array rather than a scatter into the cached one: lighting
-        # built before this call may still read the old one.
+        # built before this call may still read the old one. (With the
+        # scatter, two 8-minute KITTI fits died of SIGSEGV rendering the next
+        # validation frame after several refreshes; none of the fits since.)
         vis = np.array(cache.sky_visibility, np.float32)
         vis[slots] = np.array(new_vis, np.float32)
         cache.sky_visibility = mi.Float(vis)
