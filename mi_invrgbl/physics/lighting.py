@@ -249,6 +249,33 @@ def unit_normals(table) -> np.ndarray:
     return np.array(dr.detach(table.normal), np.float32).T.copy()
 
 
+def trace_sky(scene, nodes, table, samples, pattern=0, bounces=0, gaussians=None):
+    """Trace the M sky directions of ``gaussians`` (global indices, numpy;
+    default every Gaussian of the loaded ``table``), cosine-weighted about
+    each one's normal and turned by its :func:`hash_rotation_of`.
+
+    Returns ``(visibility, target, source, weight)``: visibility per ray
+    (``len(gaussians) * M``, Gaussian-major), then with ``bounces`` the
+    entries of the bounce matrix these rays add (receiving and blocking
+    Gaussian, blend weight / M; ``None`` for the three when nothing blocks
+    or ``bounces`` is 0). The one place sky directions are traced: the first
+    trace of a cache and :func:`retrace_turned` share it."""
+    M = int(samples)
+    with dr.suspend_grad():
+        idx = dr.arange(mi.UInt32, table.total) if gaussians is None else mi.UInt32(gaussians)
+        j = dr.arange(mi.UInt32, dr.width(idx) * M)
+        g = dr.gather(mi.UInt32, idx, j // M)
+        local = fibonacci_direction(mi.Float(j % M), M, hash_rotation_of(g, pattern))
+        dirs = mi.Frame3f(dr.gather(mi.Vector3f, dr.detach(table.normal), g)).to_world(local)
+        origins = dr.gather(mi.Point3f, dr.detach(table.center), g)
+        if bounces <= 0:
+            return transmittance(scene, origins, dirs, mi.Float(dr.inf), nodes), None, None, None
+        vis, ray, source, w = shadow_blockers(scene, origins, dirs, mi.Float(dr.inf), nodes, table)
+        if ray is None:
+            return vis, None, None, None
+        return vis, dr.gather(mi.UInt32, g, ray), source, w / M
+
+
 def retrace_turned(scene, nodes, cache: LightingCache, samples, pattern=0, bounces=0,
                    max_turn_deg=1.0, table=None) -> int:
     """Re-trace the sky visibility (and bounce entries) of the Gaussians whose
@@ -262,9 +289,9 @@ def retrace_turned(scene, nodes, cache: LightingCache, samples, pattern=0, bounc
     pixels) off the fit's own render of a training frame, whose cache was
     traced for the normals at stage 2's start, and 0.1 dB further from the
     image; turning every normal of that scene by 5 degrees moved its pixels
-    by a like spread. Only the turned Gaussians are traced again: their
-    entries of ``sky_visibility`` are overwritten and their rows of the
-    bounce matrix replaced."""
+    by a like spread. Only the turned Gaussians are traced again
+    (:func:`trace_sky`): their entries of ``sky_visibility`` are overwritten
+    and their rows of the bounce matrix replaced."""
     if cache.sky_visibility is None or cache.normals is None:
         return 0
     if table is None:
@@ -279,54 +306,31 @@ def retrace_turned(scene, nodes, cache: LightingCache, samples, pattern=0, bounc
     turned = np.flatnonzero(cos < limit).astype(np.uint32)
     if turned.size == 0:
         return 0
-    with dr.suspend_grad():
-        g_sub = mi.UInt32(turned)
-        j = dr.arange(mi.UInt32, turned.size * M)
-        g = dr.gather(mi.UInt32, g_sub, j // M)
-        i = j % M
-        local = fibonacci_direction(mi.Float(i), M, hash_rotation_of(g, pattern))
-        dirs = mi.Frame3f(dr.gather(mi.Vector3f, dr.detach(table.normal), g)).to_world(local)
-        origins = dr.gather(mi.Point3f, dr.detach(table.center), g)
-        slots = np.array(g * M + i, np.int64)
-        if bounces > 0:
-            new_vis, ray, source, w = shadow_blockers(scene, origins, dirs, mi.Float(dr.inf),
-                                                      nodes, table)
-            # Keep the other Gaussians' rows of W; the turned ones get their new rows.
-            old_target = np.array(cache.bounce_target, np.uint32) if cache.bounce_target is not None \
-                else np.zeros(0, np.uint32)
-            keep = ~np.isin(old_target, turned)
-            parts_t, parts_s, parts_w = [old_target[keep]], [], []
-            if cache.bounce_target is not None:
-                parts_s.append(np.array(cache.bounce_source, np.uint32)[keep])
-                parts_w.append(np.array(cache.bounce_weight, np.float32)[keep])
-            if ray is not None:
-                parts_t.append(turned[np.array(ray, np.uint32) // M])
-                parts_s.append(np.array(source, np.uint32))
-                parts_w.append(np.array(w, np.float32) / M)
-            target = np.concatenate(parts_t)
-            # An index past the table would be read without a bounds check
-            # by the bounce's gather and scatter: refuse it here instead.
-            if target.size and max(int(target.max()), int(np.concatenate(parts_s).max())) \
-                    >= now.shape[0]:
-                raise RuntimeError("retrace_turned: a bounce entry points past the %d Gaussians"
-                                   % now.shape[0])
-            if target.size:
-                cache.bounce_target = mi.UInt32(target)
-                cache.bounce_source = mi.UInt32(np.concatenate(parts_s))
-                cache.bounce_weight = mi.Float(np.concatenate(parts_w))
-                dr.eval(cache.bounce_target, cache.bounce_source, cache.bounce_weight)
-            else:
-                cache.bounce_target = cache.bounce_source = cache.bounce_weight = None
-        else:
-            new_vis = transmittance(scene, origins, dirs, mi.Float(dr.inf), nodes)
-        # A new array rather than a scatter into the cached one: lighting
-        # built before this call may still read the old one. (With the
-        # scatter, two 8-minute KITTI fits died of SIGSEGV rendering the next
-        # validation frame after several refreshes; none of the fits since.)
-        vis = np.array(cache.sky_visibility, np.float32)
-        vis[slots] = np.array(new_vis, np.float32)
-        cache.sky_visibility = mi.Float(vis)
-        dr.eval(cache.sky_visibility)
+    new_vis, target, source, weight = trace_sky(scene, nodes, table, M, pattern, bounces, turned)
+    if bounces > 0:
+        # Keep the other Gaussians' rows of W; the turned ones get their new rows.
+        parts = []
+        if cache.bounce_target is not None:
+            old = [np.array(a) for a in (cache.bounce_target, cache.bounce_source,
+                                         cache.bounce_weight)]
+            keep = ~np.isin(old[0], turned)
+            parts.append([a[keep] for a in old])
+        if target is not None:
+            parts.append([np.array(a) for a in (target, source, weight)])
+        if parts:
+            t, src, w = (np.concatenate(col) for col in zip(*parts))
+            cache.bounce_target, cache.bounce_source = mi.UInt32(t), mi.UInt32(src)
+            cache.bounce_weight = mi.Float(w)
+            dr.eval(cache.bounce_target, cache.bounce_source, cache.bounce_weight)
+    # A new array rather than a scatter into the cached one: lighting built
+    # before this call may still read the old one. (With the scatter, two
+    # 8-minute KITTI fits died of SIGSEGV rendering the next validation frame
+    # after several refreshes; none of the fits since.)
+    slots = (turned.astype(np.int64)[:, None] * M + np.arange(M)).ravel()
+    vis = np.array(cache.sky_visibility, np.float32)
+    vis[slots] = np.array(new_vis, np.float32)
+    cache.sky_visibility = mi.Float(vis)
+    dr.eval(cache.sky_visibility)
     cache.normals[turned] = now[turned]
     return int(turned.size)
 
@@ -360,20 +364,15 @@ class GaussianLighting:
         self.sky_dirs = frames.to_world(local)           # (G*M,) differentiable in n
         if cache.key != key:
             with dr.suspend_grad():
-                origins = dr.gather(mi.Point3f, dr.detach(table.center),
-                                    dr.arange(mi.UInt32, G * M) // M)
                 cache.bounce_target = cache.bounce_source = cache.bounce_weight = None
-                if M and self.bounces > 0:
-                    vis, ray, source, w = shadow_blockers(scene, origins, dr.detach(self.sky_dirs),
-                                                          mi.Float(dr.inf), nodes, table)
-                    cache.sky_visibility = vis
-                    if ray is not None:
-                        cache.bounce_target, cache.bounce_source = ray // M, source
-                        cache.bounce_weight = w / M
+                if M:
+                    (cache.sky_visibility, cache.bounce_target, cache.bounce_source,
+                     cache.bounce_weight) = trace_sky(scene, nodes, table, M, self.pattern,
+                                                      self.bounces)
+                    if cache.bounce_target is not None:
                         dr.eval(cache.bounce_target, cache.bounce_source, cache.bounce_weight)
                 else:
-                    cache.sky_visibility = transmittance(scene, origins, dr.detach(self.sky_dirs),
-                                                         mi.Float(dr.inf), nodes) if M else mi.Float()
+                    cache.sky_visibility = mi.Float()
                 cache.light_visibility = []
                 for kind, emitter in self.lights:
                     d, _, dist = light_at(kind, emitter, dr.detach(table.center))
