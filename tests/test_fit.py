@@ -663,6 +663,76 @@ def test_validation_stop_returns_to_the_best_state():
     assert calls == [1, 2, 3]
 
 
+def test_validation_stop_lowers_the_rates_at_a_plateau_before_it_stops():
+    # A stage that levels off goes back to its best state with every rate
+    # PLATEAU_LR_FACTOR lower, PLATEAU_REDUCTIONS times, then stops; the
+    # resumed stage that improves again counts its patience afresh.
+    import types
+    from mi_invrgbl.fit.budget import PATIENCE, PLATEAU_LR_FACTOR, PLATEAU_REDUCTIONS
+    from mi_invrgbl.fit.runner import ValidationStop
+    assert PLATEAU_REDUCTIONS == 2
+    lines = []
+    state = types.SimpleNamespace(validation_frames=[object()], selection={}, log=lines.append)
+    plan = types.SimpleNamespace(eval_every=1, name="stage 2")
+    # Up to 2 at iteration 2, level for PATIENCE evaluations, up again after
+    # the first reduction, level again twice.
+    scores = [20.0, 22.0] + [21.9] * PATIENCE + [22.5] + [22.4] * PATIENCE + [22.4] * PATIENCE
+    resumed = []
+    now = {"it": 0}
+    stop = ValidationStop(state, plan, float("inf"), lambda: scores[now["it"] - 1],
+                          keep=lambda: "state@%d" % now["it"],
+                          resume_from=lambda kept, damping: resumed.append((kept, damping)))
+    reason = None
+    for it in range(1, len(scores) + 1):
+        now["it"] = it
+        reason = stop(it)
+        if reason:
+            break
+    first, second = 2 + PATIENCE, 3 + 2 * PATIENCE
+    assert resumed == [("state@2", PLATEAU_LR_FACTOR), ("state@%d" % (first + 1), PLATEAU_LR_FACTOR ** 2)]
+    assert stop.plateaus == [first, second]
+    assert reason and now["it"] == second + PATIENCE
+    assert state.selection["budget"]["stage 2"]["plateaus"] == [
+        {"at": first, "back_to": 2}, {"at": second, "back_to": first + 1}]
+    assert "back to it with the learning rates x0.3" in lines[0]
+    # Without a way back (or without a kept state) it stops at the first plateau.
+    stop = ValidationStop(state, plan, float("inf"), lambda: scores[now["it"] - 1])
+    for it in range(1, len(scores) + 1):
+        now["it"] = it
+        if stop(it):
+            break
+    assert now["it"] == first and stop.plateaus == []
+
+
+def test_optimizer_damping_scales_the_schedules_and_survives_a_rebuild():
+    import drjit as dr
+    import mitsuba as mi
+    from mi_invrgbl.fit.variables import Optimizer
+    from mi_invrgbl.fit.budget import ANNEAL_END, ANNEAL_FROM, anneal_lr_factor
+
+    class Var:
+        def __init__(self, key, lr):
+            self.key, self.lr, self.node = key, lr, None
+            self.value = mi.Float([1.0, 2.0])
+
+        def read(self):
+            return self.value
+
+    opt = Optimizer([Var("a", 0.1), Var("b", 0.01)])
+    lr = lambda o, k: float(o.adam.state[k][2])   # noqa: E731
+    opt.set_damping(0.3)
+    assert lr(opt, "a") == pytest.approx(0.03) and lr(opt, "b") == pytest.approx(0.003)
+    opt.scale_learning_rates(0.5, lambda v: v.key == "a")
+    assert lr(opt, "a") == pytest.approx(0.015) and lr(opt, "b") == pytest.approx(0.003)
+    new = opt.rebuild([Var("a", 0.1), Var("b", 0.01)], {})
+    assert new.damping == 0.3 and lr(new, "a") == pytest.approx(0.03)
+    # Stage 1's anneal: flat until ANNEAL_FROM, ANNEAL_END at the end, monotone.
+    assert anneal_lr_factor(0.0) == anneal_lr_factor(ANNEAL_FROM) == 1.0
+    assert anneal_lr_factor(1.0) == pytest.approx(ANNEAL_END) == anneal_lr_factor(2.0)
+    f = [anneal_lr_factor(p) for p in np.linspace(0, 1, 50)]
+    assert all(a >= b for a, b in zip(f, f[1:])) and dr.all(mi.Bool(True))
+
+
 def test_batch_probe_keeps_larger_batches_only_where_they_are_cheap():
     import time
     from mi_invrgbl.fit.budget import probe_batch_scale, MIN_STEPS
@@ -776,6 +846,27 @@ def test_budget_sets_iterations_and_stops_in_time(scene_path, tmp_path):
     retraced = metrics["selection"]["lighting_retraced"]
     assert retraced["refreshes"] >= 1 and retraced["turn_deg"] > 0
     assert retraced["gaussians"] >= 0 and retraced["seconds"] >= 0
+
+
+def test_budgeted_stages_go_back_and_on_at_their_plateaus(scene_path, tmp_path, monkeypatch):
+    # Every validation score made to count as no gain: each budgeted stage
+    # goes back to its best state with lower rates PLATEAU_REDUCTIONS times
+    # (through the stages' real snapshots and optimisers) and then stops.
+    from mi_invrgbl.fit import runner
+    from mi_invrgbl.fit.budget import EarlyStop, PLATEAU_REDUCTIONS
+    monkeypatch.setattr(runner, "EarlyStop", lambda: EarlyStop(patience=1, min_gain=1e9))
+    lines = []
+    metrics = run_fit(scene_path, small_config(tmp_path, budget_minutes=0.6, eval_every=5),
+                      log=lines.append)
+    plans = metrics["selection"]["budget"]
+    for stage in ("stage 1", "stage 2"):
+        stops = [str(x) for x in lines if str(x).startswith("[fit] %s stops" % stage)]
+        if "validation score" not in "".join(stops):
+            continue     # the stage's time ran out first
+        assert len(plans[stage]["plateaus"]) == PLATEAU_REDUCTIONS, plans[stage]
+    assert any("plateaus" in plans[s] for s in plans), plans
+    assert any("back to it with the learning rates x0.09" in str(x) for x in lines)
+    assert metrics["interrupted"] is False and np.isfinite(metrics["heldout_psnr"])
 
 
 def test_stage2_start_is_restored_exactly(scene_path, tmp_path):

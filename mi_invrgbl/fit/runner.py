@@ -37,6 +37,7 @@ import mitsuba as mi
 from . import outputs
 from .budget import (OUTPUT_RESERVE, TIMED, Budget, EarlyStop, Replan,
                      overrun_report, plan_stage, position_lr_factor, probe_batch_scale,
+                     PLATEAU_LR_FACTOR, PLATEAU_REDUCTIONS, anneal_lr_factor,
                      small_budget_warning, stage1_seconds, stage_progress, time_iterations,
                      fixed_costs)
 from .checkpoint import checkpoint_path, fingerprint, load_checkpoint, save_checkpoint
@@ -188,13 +189,18 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
             state.log(warning)
         total = plan.iterations
         started = t     # (``t`` is reused below, after the stage)
+        def resume_from(snapshot, damping):
+            s1.restore(snapshot)
+            s1.opt.set_damping(damping)
         run.stop = ValidationStop(state, plan, started + share,
                                   lambda: score_stage1(state, state.validation_frames),
-                                  keep=s1.snapshot)
+                                  keep=s1.snapshot, resume_from=resume_from)
         def after_step(it, total):
             progress = stage_progress(it, total, time.perf_counter() - started, share)
             s1.after_step(it, total, progress)
             s1.opt.scale_learning_rates(position_lr_factor(progress), moves_with_positions)
+            s1.opt.scale_learning_rates(anneal_lr_factor(progress),
+                                        lambda v: not moves_with_positions(v))
         run.after_step = after_step
         run.replan = replanner(state, plan, start, started + share)
     elif budget is not None:
@@ -253,8 +259,12 @@ def fit_materials(state: FitState, stage2, start, checkpoint, budget=None, fresh
                       % (seconds, budget.share("stage 2"), t - budget.t_start))
         state.selection.setdefault("budget", {})["stage 2"] = plan.as_dict()
         total = plan.iterations
+        def resume_from(snapshot, damping):
+            stage2.restore(snapshot)
+            stage2.opt.set_damping(damping)
         run.stop = ValidationStop(state, plan, t + seconds, lambda: validation_score(
-            *score_stage2(stage2, state.validation_frames, refresh=True)), keep=stage2.snapshot)
+            *score_stage2(stage2, state.validation_frames, refresh=True)), keep=stage2.snapshot,
+            resume_from=resume_from)
         run.replan = replanner(state, plan, start, t + seconds)
     if total > start:
         last = train(state, run, start, total)
@@ -321,16 +331,25 @@ class ValidationStop:
     by its validation score has run ``PATIENCE`` evaluations past its best,
     and on the street its stage 1 had lost 0.46 dB held-out by then (25.08
     dB at step 300, 24.62 at 516).
+
+    With ``resume_from`` (``resume_from(best_state, damping)`` puts the
+    stage back into a kept state and sets its optimiser's damping), a stage
+    whose score levels off goes back to its best state and goes on with
+    every learning rate :data:`~.budget.PLATEAU_LR_FACTOR` times lower, up
+    to :data:`~.budget.PLATEAU_REDUCTIONS` times, before it stops: what
+    was left of the budget would otherwise go unused.
     """
 
-    def __init__(self, state: FitState, plan, deadline, score, keep=None):
+    def __init__(self, state: FitState, plan, deadline, score, keep=None, resume_from=None):
         self.state, self.plan, self.deadline = state, plan, deadline
-        self.score, self.keep = score, keep
+        self.score, self.keep, self.resume_from = score, keep, resume_from
         self.stopper = EarlyStop()
         self.best_score = -np.inf
         self.best_state = None
         self.best_iteration = None
         self.last = (None, np.nan)      # (iteration, score) of the last evaluation
+        self.damping = 1.0
+        self.plateaus = []              # iterations at which the rates were lowered
 
     def __call__(self, it):
         if time.perf_counter() > self.deadline:
@@ -342,6 +361,18 @@ class ValidationStop:
         if self.keep is not None and np.isfinite(score) and score > self.best_score:
             self.best_score, self.best_state, self.best_iteration = score, self.keep(), it
         if self.stopper.update(score):
+            if (self.resume_from is not None and self.best_state is not None
+                    and len(self.plateaus) < PLATEAU_REDUCTIONS):
+                self.damping *= PLATEAU_LR_FACTOR
+                self.plateaus.append(it)
+                self.resume_from(self.best_state, self.damping)
+                self.stopper.since_best = 0
+                record = self.state.selection.setdefault("budget", {}).setdefault(self.plan.name, {})
+                record.setdefault("plateaus", []).append({"at": it, "back_to": self.best_iteration})
+                self.state.log("[fit] %s: validation score level since iteration %d (%.3f); back "
+                               "to it with the learning rates x%.2g" % (
+                                   self.plan.name, self.best_iteration, self.best_score, self.damping))
+                return None
             return "validation score %.3f no better than %.3f for %d evaluations" % (
                 self.stopper.history[-1], self.stopper.best, self.stopper.patience)
         return None

@@ -176,6 +176,10 @@ class Optimizer:
         self.variables = {v.key: v for v in variables if v.lr != 0.0}
         self.adam = make_optimizer({k: v.read() for k, v in self.variables.items()},
                                    {k: v.lr for k, v in self.variables.items()})
+        #: Factor on every learning rate, below 1 once a budgeted stage's
+        #: validation score has levelled off (:meth:`set_damping`); the
+        #: schedules of :meth:`scale_learning_rates` apply on top of it.
+        self.damping = 1.0
 
     def __contains__(self, variable):
         return variable.key in self.variables
@@ -203,10 +207,16 @@ class Optimizer:
 
     def scale_learning_rates(self, factor, which):
         """Set the learning rate of every handle ``which(handle)`` accepts to
-        ``factor`` times its own (a schedule)."""
+        ``factor`` times its own (a schedule), times :attr:`damping`."""
         for k, v in self.variables.items():
             if which(v):
-                self.adam.set_learning_rate({k: float(v.lr * factor)})
+                self.adam.set_learning_rate({k: float(v.lr * factor * self.damping)})
+
+    def set_damping(self, damping):
+        """Every learning rate to ``damping`` times its own (a stage's
+        schedule, applied at its next step, multiplies it again)."""
+        self.damping = float(damping)
+        self.scale_learning_rates(1.0, lambda v: True)
 
     def moments(self, key):
         """(t, m, v) of one variable as numpy (m, v flat)."""
@@ -225,9 +235,11 @@ class Optimizer:
         make its steps several times the learning rate for hundreds of
         iterations; the parent's first moment would make a clone repeat its
         parent's steps.) Rows without a parent start at zero; other
-        variables (the sky) keep their state. Learning rates start afresh.
+        variables (the sky) keep their state. Learning rates start afresh
+        (times the :attr:`damping`, which carries over).
         """
         new = Optimizer(variables)
+        new.set_damping(self.damping)
         fresh = fresh or {}
         for key, var in new.variables.items():
             if key not in self.variables:
