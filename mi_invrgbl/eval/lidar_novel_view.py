@@ -41,6 +41,7 @@ import numpy as np
 
 from ..errors import UserError
 from ..physics.lidar_response import return_scores
+from ..physics.host_arrays import jit_array
 from .baselines import NearestNeighbourIntensity, load_points, training_positions
 
 #: Voxel of the lookup's ray caster (metres) and its marching step.
@@ -177,9 +178,9 @@ def render_rays(scene, integrator, origin, directions, beam, near: float, far: f
     d = np.asarray(directions, np.float64)
     o = np.asarray(origin, np.float64) + d * near
     rays = mi.Ray3f(mi.Point3f(o.T.astype(np.float32)), mi.Vector3f(d.T.astype(np.float32)))
-    rays.maxt = mi.Float(np.full(len(d), far - near, np.float32))
+    rays.maxt = jit_array(mi.Float, np.full(len(d), far - near, np.float32))
     with dr.suspend_grad():
-        ch = integrator.render_beams(scene, rays, mi.UInt32(np.asarray(beam, np.uint32)),
+        ch = integrator.render_beams(scene, rays, jit_array(mi.UInt32, np.asarray(beam, np.uint32)),
                                      near=float(near))
     return np.array(ch[0], np.float64), np.array(ch[1], np.float64), np.array(ch[2]) > 0.5
 

@@ -22,6 +22,7 @@ from .response import MIN_COS, estimate_response, prior_for
 from .selection import fit_sh_orders, pad_sh
 from .sky_mask import frame_sky_mask
 from .state import FitState, SkyKeys
+from ..physics.host_arrays import jit_array
 
 
 def split_validation(train, every):
@@ -149,7 +150,7 @@ def sh_mask(order, emitter_order) -> mi.Float:
     """1 for the SH coefficients up to ``order``, 0 above (the emitter's layout)."""
     mask = np.zeros((num_coeffs(emitter_order), 3), np.float32)
     mask[: num_coeffs(int(order))] = 1
-    return mi.Float(mask.ravel())
+    return jit_array(mi.Float, mask)
 
 
 def init_materials(ctx: FitState, frozen):
@@ -218,7 +219,7 @@ def init_materials(ctx: FitState, frozen):
             info["albedo_scale"] = float(scale)
             start = 0
             for name, node in ctx.model.nodes.items():
-                node.values["lidar_albedo"] = mi.Float(allrho[start:start + node.count].astype(np.float32))
+                node.values["lidar_albedo"] = jit_array(mi.Float, allrho[start:start + node.count])
                 start += node.count
     ctx.selection["response_init"] = info
     ctx.times["material init"] = time.perf_counter() - t

@@ -38,6 +38,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..eval.metrics import SRGB_A, SRGB_GAMMA, SRGB_KNEE, SRGB_SLOPE
+from ..physics.host_arrays import jit_array
 
 #: Default bandwidth of the bilateral weight of L_rgb->lidar. The paper leaves
 #: sigma unspecified. Albedos live in [0, 1]; with sigma = 0.1 an RGB albedo
@@ -353,7 +354,7 @@ def superpixel_variance(b_rgb, labels, n_labels, mask=None):
     if not dr.is_array_v(labels):
         # numpy / lists, e.g. slic_labels' int32 map: -1 (invalid) -> ignored
         flat = np.asarray(labels, np.int64).ravel()
-        labels = mi.UInt32(np.where(flat < 0, 0xFFFFFFFF, flat).astype(np.uint32))
+        labels = jit_array(mi.UInt32, np.where(flat < 0, 0xFFFFFFFF, flat).astype(np.uint32))
     labels = _flat(labels)
     if not isinstance(labels, mi.UInt32):
         labels = mi.UInt32(labels)

@@ -28,6 +28,7 @@ from ..physics.fields import BY_NAME, FIELDS, GEOMETRY, MATERIAL
 from ..physics.gaussian_ply import GaussianCloud
 from ..plugins.gaussians import cloud_from_shape, apply_transform
 from .object_poses import RigidPose
+from ..physics.host_arrays import jit_array
 
 GEOMETRY_KEYS = tuple(f.variable for f in GEOMETRY)
 MATERIAL_KEYS = tuple(f.variable for f in MATERIAL)
@@ -112,7 +113,7 @@ class GaussianModel:
             cloud = apply_transform(cloud, np.linalg.inv(pose))
         node = self.nodes[name]
         node.count = len(cloud)
-        node.values = {f.variable: mi.Float(f.to_storage(getattr(cloud, f.cloud)).astype(np.float32).ravel())
+        node.values = {f.variable: jit_array(mi.Float, f.to_storage(getattr(cloud, f.cloud)))
                        for f in FIELDS}
 
     @property
@@ -192,5 +193,5 @@ class GaussianModel:
             if name not in self.nodes:
                 continue
             node = self.nodes[name]
-            node.values[k] = mi.Float(np.asarray(value, np.float32).ravel())
+            node.values[k] = jit_array(mi.Float, value)
             node.count = node.values[k].shape[0] // WIDTHS[k] if k in WIDTHS else node.count

@@ -39,6 +39,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..scene.posing import rotation_to_quat_xyzw
+from ..physics.host_arrays import jit_array
 
 #: Adam learning rates of the correction: metres and radians per step.
 #: Adam moves a value by about its rate per step that has a gradient, and a
@@ -209,7 +210,7 @@ class ObjectPoseFit:
             full = np.interp(np.asarray(self.train), known, offsets[ok])
             t = np.array(dr.detach(self.values[name, "t"]), np.float64).reshape(-1, 3)
             t[self.train, 0] = full
-            self.values[name, "t"] = mi.Float(t.ravel().astype(np.float32))
+            self.values[name, "t"] = jit_array(mi.Float, t)
             report[name]["offset_m"] = [round(float(v), 3) for v in full]
             if log is not None:
                 log("[fit] %s: poses moved along its heading by up to %.2f m (median %.2f m) at "
@@ -259,7 +260,7 @@ class ObjectPoseFit:
         for k in self.values:
             v = state.get(self.key(*k))
             if v is not None and v.size == 3 * len(self.frames):
-                self.values[k] = mi.Float(np.asarray(v, np.float32).ravel())
+                self.values[k] = jit_array(mi.Float, v)
 
 
 #: The heading search of :meth:`ObjectPoseFit.align_from_images`: range and

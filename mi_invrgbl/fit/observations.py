@@ -30,6 +30,7 @@ from ..io.images import read_exr, read_mask
 from ..io.kitti import srgb_to_linear
 from ..scene.frames import Frames
 from .render import gather_rays
+from ..physics.host_arrays import jit_array
 
 
 class Masked:
@@ -92,12 +93,12 @@ class CameraObservation(Masked):
     def pixel_rays(self, index, offset=None):
         """Rays through the pixels ``index`` (numpy) at ``offset`` ((N, 2)
         numpy in [0, 1) within each pixel; default: the centres, cached)."""
-        idx = mi.UInt32(np.asarray(index, np.uint32))
+        idx = jit_array(mi.UInt32, index)
         if offset is None:
             return gather_rays(self.rays, idx)
         return pixel_rays(self.sensor, self.width, self.height, idx,
-                          (mi.Float(offset[:, 0].astype(np.float32)),
-                           mi.Float(offset[:, 1].astype(np.float32))))
+                          (jit_array(mi.Float, offset[:, 0]),
+                           jit_array(mi.Float, offset[:, 1])))
 
 
 @dataclass
@@ -154,7 +155,7 @@ def lidar_rays(sensor, stride):
     rays, row, (h, w), near = LidarReturnIntegrator.beam_rays(sensor)
     cols = np.arange(0, w, stride)
     keep = (np.arange(h)[:, None] * w + cols[None, :]).ravel().astype(np.uint32)
-    k = mi.UInt32(keep)
+    k = jit_array(mi.UInt32, keep)
     out = mi.Ray3f(dr.gather(mi.Point3f, rays.o, k), dr.gather(mi.Vector3f, rays.d, k))
     out.maxt = dr.gather(mi.Float, rays.maxt, k)
     return out, dr.gather(mi.UInt32, row, k), dr.gather(mi.Float, near, k), cols, (h, w)

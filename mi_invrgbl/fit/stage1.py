@@ -33,6 +33,7 @@ from .render import gather_rays as _gather_rays
 from .steps import safe_step
 from .object_poses import PARTS as POSE_PARTS
 from .variables import GaussianVariable, Optimizer, PoseVariable, SkySH
+from ..physics.host_arrays import jit_array
 
 #: Learning rate of the sky's SH coefficients (the Gaussians' are in the field table).
 SKY_LR = 1e-2
@@ -117,7 +118,7 @@ class Stage1:
             cam = frame.camera
             n = len(pool)
             sel = pool[self.rng.integers(0, n, min(self.batch_camera, n))]
-            idx = mi.UInt32(sel)
+            idx = jit_array(mi.UInt32, sel)
             # Through the pixel centres: rays through a random point of each
             # pixel (the image's box filter in expectation) scored 18.34 dB
             # against 18.46 on the KITTI excerpt's validation frames after
@@ -128,18 +129,18 @@ class Stage1:
             target = dr.gather(mi.Color3f, self.ctx.image_array(frame), idx)
             terms["rgb"] = losses.rgb_loss(rgb, target, space=cfg.rgb_space)
             if cam.sky is not None and cfg.stage1_sky > 0:
-                terms["sky"] = losses.sky_loss(alpha, mi.Bool(cam.sky[sel])) * cfg.stage1_sky
+                terms["sky"] = losses.sky_loss(alpha, jit_array(mi.Bool, cam.sky[sel])) * cfg.stage1_sky
         pool = frame.lidar.valid_index() if frame.lidar is not None else ()
         if len(pool) and (cfg.stage1_range > 0 or cfg.stage1_drop > 0):
             lid = frame.lidar
             n = len(pool)
             sel = pool[self.rng.integers(0, n, min(self.batch_lidar, n))]
-            idx = mi.UInt32(sel)
+            idx = jit_array(mi.UInt32, sel)
             rays = _gather_rays(lid.rays, idx)
             ch = lidar_beams(self.ctx.lidar_integrator, self.ctx.scene, rays,
                              dr.gather(mi.UInt32, lid.row, idx), dr.gather(mi.Float, lid.near, idx))
-            hit = mi.Bool(lid.hit.ravel()[sel])
-            obs_range = mi.Float(lid.range.ravel()[sel].astype(np.float32))
+            hit = jit_array(mi.Bool, lid.hit.ravel()[sel])
+            obs_range = jit_array(mi.Float, lid.range.ravel()[sel])
             both = hit & (ch[2] > 0)
             terms["range"] = losses.range_loss(ch[1], obs_range, both) * cfg.stage1_range
             terms["raydrop"] = losses.ray_drop_loss(ch[4], hit) * cfg.stage1_drop
@@ -217,7 +218,7 @@ class Stage1:
         The stage-2 fields' old per-Gaussian rows travel with the cloud: they
         are not optimised yet."""
         self.model.set_cloud(name, cloud, local=True)
-        self.model.nodes[name].values["colour"] = mi.Float(cloud.albedo.astype(np.float32).ravel())
+        self.model.nodes[name].values["colour"] = jit_array(mi.Float, cloud.albedo)
 
     # ------------------------------------------------------------ densify
     def densify(self):

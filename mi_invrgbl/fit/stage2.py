@@ -50,6 +50,7 @@ from .render import (Response, VirtualNode, camera_shaded, freeze, frozen_gaussi
 from .steps import safe_step
 from .variables import GaussianVariable, Optimizer, ResponseVariable, SkySH, SunVariable
 from .superpixels import slic_labels
+from ..physics.host_arrays import jit_array
 
 #: Metres above a Gaussian's centre its traced sun visibility starts from.
 SHADOW_OFFSET = 0.1
@@ -321,7 +322,7 @@ class Stage2:
                 vis = np.clip(np.array(transmittance(ctx.scene, origin, d,
                                                      mi.Float(dr.inf), ordered)), 0.0, 1.0)
                 for name, v in zip(names, shading_init.split_by_node(vis, table, counts)):
-                    model.nodes[name].values["sun_visibility"] = mi.Float(v.astype(np.float32))
+                    model.nodes[name].values["sun_visibility"] = jit_array(mi.Float, v)
                 sun_dir = np.array(d, np.float64).T
             vals = self.values()
             nodes = self.frozen.nodes(frame, vals)
@@ -369,7 +370,7 @@ class Stage2:
                     report["lidar_albedo_shadowed"] = lowered
                     report["lidar_albedo_unshadowed"] = raised
                     for name, v in zip(names, shading_init.split_by_node(vis, table, counts)):
-                        model.nodes[name].values["sun_visibility"] = mi.Float(v.astype(np.float32))
+                        model.nodes[name].values["sun_visibility"] = jit_array(mi.Float, v)
                 ctx.params[ctx.sun_key] = mi.Color3f(*[float(x) for x in E])
                 ctx.params.update()
                 sun_term = E[None, :] * (vis * cos)[:, None] / np.pi
@@ -446,7 +447,7 @@ class Stage2:
             albedo = shading_init.albedo_from_shading(colour - spec * k, (D + indirect(albedo)) * k,
                                                       sun_term * k)
         for name, a in zip(names, shading_init.split_by_node(albedo, table, counts)):
-            model.nodes[name].values["albedo"] = mi.Float(a.astype(np.float32).ravel())
+            model.nodes[name].values["albedo"] = jit_array(mi.Float, a)
         self.build_optimizer()
 
     def mean_specular(self, names, frames=8):
@@ -596,7 +597,7 @@ class Stage2:
         cam = frame.camera
         rho = np.array(dr.detach(out["camera"]["lidar_albedo"]), np.float32).reshape(cam.height, cam.width)
         labels, n = slic_labels(rho, region_size=self.ctx.config.slic_size)
-        self.labels[frame.index] = (mi.UInt32(labels.ravel().astype(np.uint32)), int(n))
+        self.labels[frame.index] = (jit_array(mi.UInt32, labels), int(n))
 
     def loss_terms(self, frame, out, weights):
         ctx = self.ctx
@@ -629,7 +630,7 @@ class Stage2:
                     terms["mat"] = sum(mat[1:], mat[0])
         if "lidar" in out:
             lid = frame.lidar
-            obs = mi.Float(lid.intensity.ravel().astype(np.float32))
+            obs = jit_array(mi.Float, lid.intensity)
             hit = mi.Bool(lid.hit.ravel())
             # Normalised to the observed scale: raw return power can be ~1e-3,
             # which would make L_lidar vanish next to L_rgb at the paper's weights.

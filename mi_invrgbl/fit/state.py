@@ -20,6 +20,7 @@ from .model import GaussianModel
 from .observations import FrameObservation
 from .progress import SpeedErrorLog
 from .render import Response
+from ..physics.host_arrays import jit_array
 
 
 @dataclass
@@ -127,7 +128,7 @@ class FitState:
     def image_array(self, frame: FrameObservation):
         if frame.index not in self._image_cache:
             img = frame.camera.image.reshape(-1, 3)
-            self._image_cache[frame.index] = mi.Color3f(*[mi.Float(img[:, c].copy()) for c in range(3)])
+            self._image_cache[frame.index] = mi.Color3f(*[jit_array(mi.Float, img[:, c]) for c in range(3)])
         return self._image_cache[frame.index]
 
     def prior_array(self, frame: FrameObservation, kind):
@@ -135,7 +136,7 @@ class FitState:
         if key not in self._prior_cache:
             p = frame.camera.priors[kind].reshape(frame.camera.width * frame.camera.height, -1)
             if p.shape[1] >= 3:
-                self._prior_cache[key] = mi.Vector3f(*[mi.Float(p[:, c].copy()) for c in range(3)])
+                self._prior_cache[key] = mi.Vector3f(*[jit_array(mi.Float, p[:, c]) for c in range(3)])
             else:
-                self._prior_cache[key] = mi.Float(p[:, 0].copy())
+                self._prior_cache[key] = jit_array(mi.Float, p[:, 0])
         return self._prior_cache[key]

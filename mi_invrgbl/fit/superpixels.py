@@ -170,5 +170,6 @@ def split_by_value(labels, image, n_labels: int, tolerance: float):
 def labels_to_drjit(labels):
     """Flattened labels as ``mi.UInt32`` (``-1`` becomes 0xFFFFFFFF, ignored by the loss)."""
     import mitsuba as mi
+    from ..physics.host_arrays import jit_array
     flat = np.asarray(labels, np.int64).ravel()
-    return mi.UInt32(np.where(flat < 0, 0xFFFFFFFF, flat).astype(np.uint32))
+    return jit_array(mi.UInt32, np.where(flat < 0, 0xFFFFFFFF, flat).astype(np.uint32))

@@ -36,6 +36,7 @@ import drjit as dr
 import mitsuba as mi
 
 from . import hits as hitlib
+from .host_arrays import jit_array
 
 GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 #: Gaussians traversed by a visibility (shadow) ray before giving up.
@@ -117,7 +118,7 @@ class GaussianTable:
         for node, off in zip(self.nodes, self.offsets):
             ids[off:off + node.count] = node.id
             prims[off:off + node.count] = np.arange(node.count, dtype=np.uint32)
-        return mi.UInt32(ids), mi.UInt32(prims)
+        return jit_array(mi.UInt32, ids), jit_array(mi.UInt32, prims)
 
     def load_geometry(self):
         """Differentiable centres and unit normals of every Gaussian."""
@@ -262,7 +263,7 @@ def trace_sky(scene, nodes, table, samples, pattern=0, bounces=0, gaussians=None
     trace of a cache and :func:`retrace_turned` share it."""
     M = int(samples)
     with dr.suspend_grad():
-        idx = dr.arange(mi.UInt32, table.total) if gaussians is None else mi.UInt32(gaussians)
+        idx = dr.arange(mi.UInt32, table.total) if gaussians is None else jit_array(mi.UInt32, gaussians)
         j = dr.arange(mi.UInt32, dr.width(idx) * M)
         g = dr.gather(mi.UInt32, idx, j // M)
         local = fibonacci_direction(mi.Float(j % M), M, hash_rotation_of(g, pattern))
@@ -319,8 +320,9 @@ def retrace_turned(scene, nodes, cache: LightingCache, samples, pattern=0, bounc
             parts.append([np.array(a) for a in (target, source, weight)])
         if parts:
             t, src, w = (np.concatenate(col) for col in zip(*parts))
-            cache.bounce_target, cache.bounce_source = mi.UInt32(t), mi.UInt32(src)
-            cache.bounce_weight = mi.Float(w)
+            cache.bounce_target = jit_array(mi.UInt32, t)
+            cache.bounce_source = jit_array(mi.UInt32, src)
+            cache.bounce_weight = jit_array(mi.Float, w)
             dr.eval(cache.bounce_target, cache.bounce_source, cache.bounce_weight)
     # A new array rather than a scatter into the cached one: lighting built
     # before this call may still read the old one. (With the scatter, two
@@ -329,7 +331,7 @@ def retrace_turned(scene, nodes, cache: LightingCache, samples, pattern=0, bounc
     slots = (turned.astype(np.int64)[:, None] * M + np.arange(M)).ravel()
     vis = np.array(cache.sky_visibility, np.float32)
     vis[slots] = np.array(new_vis, np.float32)
-    cache.sky_visibility = mi.Float(vis)
+    cache.sky_visibility = jit_array(mi.Float, vis)
     dr.eval(cache.sky_visibility)
     cache.normals[turned] = now[turned]
     return int(turned.size)

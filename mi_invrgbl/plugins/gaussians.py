@@ -8,6 +8,7 @@ import mitsuba as mi
 
 from ..physics.fields import MATERIAL
 from ..physics.gaussian_ply import GaussianCloud, GaussianFileError, read_ply
+from ..physics.host_arrays import jit_tensor
 
 _variant = mi.variant()
 
@@ -151,13 +152,13 @@ def ellipsoids_dict(cloud: GaussianCloud, shape_id: str = "", extent: float = 3.
     normals = cloud.normals / np.maximum(np.linalg.norm(cloud.normals, axis=1, keepdims=True), 1e-12)
     d = {
         "type": "ellipsoids",
-        "data": mi.TensorXf(data),
-        "opacities": mi.TensorXf(np.clip(cloud.opacities, 0, 1).reshape(n, 1).astype(np.float32)),
+        "data": jit_tensor(data),
+        "opacities": jit_tensor(np.clip(cloud.opacities, 0, 1).reshape(n, 1)),
         "extent": float(extent),
     }
     for f in MATERIAL:
         value = normals if f.name == "normal" else getattr(cloud, f.cloud)
-        d[f.name] = mi.TensorXf(np.asarray(value, np.float32).reshape(n, f.width))
+        d[f.name] = jit_tensor(np.asarray(value, np.float32).reshape(n, f.width))
     if shape_id:
         d["id"] = shape_id
     return d

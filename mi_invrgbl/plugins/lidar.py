@@ -108,6 +108,8 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
+from ..physics.host_arrays import jit_array
+
 _variant = mi.variant()
 
 #: Default number of azimuth steps when no film is given.
@@ -272,18 +274,18 @@ class LidarSensor(mi.Sensor):
 
     def _build_tables(self):
         dirs = self.ray_directions_local().reshape(-1, 3)
-        self._dirs = mi.Vector3f(*(dirs[:, k].astype(np.float32) for k in range(3)))
+        self._dirs = mi.Vector3f(*(jit_array(mi.Float, dirs[:, k]) for k in range(3)))
         if self._rays_local is None:
             beam = np.repeat(np.arange(self._height), self._width)
         else:
             beam = self._ray_beam
-        self._beams = mi.UInt32(beam.astype(np.uint32))
+        self._beams = jit_array(mi.UInt32, beam.astype(np.uint32))
         self._n_beams = int(beam.max()) + 1
         if self._rays_local is None:
             self._origins = None
         else:
             o = self._rays_local[:, :3]
-            self._origins = mi.Point3f(*(o[:, k].astype(np.float32) for k in range(3)))
+            self._origins = mi.Point3f(*(jit_array(mi.Float, o[:, k]) for k in range(3)))
 
     def _validate(self):
         if not (self._near >= 0.0):

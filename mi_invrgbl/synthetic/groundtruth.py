@@ -15,6 +15,8 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
+from ..physics.host_arrays import jit_array
+
 
 def rows(v) -> np.ndarray:
     """A Dr.Jit 3-vector array (3 x N) as a numpy (N, 3) array."""
@@ -90,7 +92,7 @@ def sun_visibility(scene, si, normals: np.ndarray, sun: np.ndarray, hit: np.ndar
 def camera_rays(sensor, width: int, height: int):
     """One ray per pixel centre from Mitsuba's own sensor (row-major, top row first)."""
     u, v = np.meshgrid((np.arange(width) + 0.5) / width, (np.arange(height) + 0.5) / height)
-    pos = mi.Point2f(u.reshape(-1).astype(np.float32), v.reshape(-1).astype(np.float32))
+    pos = mi.Point2f(jit_array(mi.Float, u), jit_array(mi.Float, v))
     ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
     return ray
 

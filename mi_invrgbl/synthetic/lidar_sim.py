@@ -23,6 +23,7 @@ import numpy as np
 import mitsuba as mi
 
 from ..physics import brdf
+from ..physics.host_arrays import jit_array
 from . import sensors
 from .groundtruth import oriented_normals
 
@@ -61,10 +62,10 @@ def sweep(scene, table, world_from_velo: np.ndarray, pattern, rng: np.random.Gen
     n = oriented_normals(g["n"], world_d)
     cos = np.clip(-np.sum(n * world_d, axis=1), 0.0, 1.0)
     dist = np.maximum(g["t"], MIN_RANGE)
-    clean = np.array(brdf.lidar_intensity(mi.Float(g["lidar_albedo"].astype(np.float32)),
-                                          mi.Float(g["roughness"].astype(np.float32)),
-                                          mi.Float(cos.astype(np.float32)),
-                                          mi.Float(dist.astype(np.float32)), power=POWER),
+    clean = np.array(brdf.lidar_intensity(jit_array(mi.Float, g["lidar_albedo"]),
+                                          jit_array(mi.Float, g["roughness"]),
+                                          jit_array(mi.Float, cos),
+                                          jit_array(mi.Float, dist), power=POWER),
                      dtype=np.float64)
     gain = pattern.beam_gains[pattern.beam]
     strength = gain * clean * INTENSITY_SCALE
