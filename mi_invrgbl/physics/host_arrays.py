@@ -7,10 +7,10 @@ in whole SIMD packets, up to a packet past the last element, which its own
 allocations leave room for and a NumPy buffer does not: where the buffer
 ends just before an unmapped page, the kernel dies of SIGSEGV. Large NumPy
 arrays are mapped pages of their own (glibc's ``mmap`` threshold), so the
-chance is small per array but real per fit: budgeted fits died this way in
-stage 2, rendering right after their lighting caches were re-written from
-NumPy (``tests/test_host_arrays.py`` builds an array that ends at a guard
-page to show the overrun).
+chance is small per array but real per fit: budgeted fits died of SIGSEGV
+in stage 2, rendering right after their lighting caches were re-written
+from NumPy (``tests/test_host_arrays.py`` builds an array that ends at a
+guard page to show the overrun).
 
 :func:`jit_array` copies the data into a NumPy buffer with :data:`PAD_BYTES`
 of slack after it and hands Dr.Jit a view of that, so the packet past the
