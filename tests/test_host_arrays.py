@@ -79,3 +79,18 @@ def test_empty_and_typed_inputs():
     # float64 and 2-D inputs: converted and flattened.
     np.testing.assert_array_equal(np.array(jit_array(mi.Float, np.ones((2, 3)))), np.ones(6))
     assert PAD_BYTES >= 64
+
+
+def test_no_numpy_array_reaches_dr_jit_unpadded():
+    # A guard on the code: the usual ways of handing a fresh NumPy array to a
+    # Dr.Jit constructor (np.* calls, .astype, .ravel(), .copy()) go through
+    # jit_array instead.
+    import re
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1] / "mi_invrgbl"
+    pattern = re.compile(r"mi\.(Float|UInt32|Int32|Bool|TensorXf)\((np\.|[^()]*\.astype\(|"
+                         r"[^()]*\.ravel\(\)|[^()]*\.copy\(\))")
+    found = ["%s:%d" % (p.relative_to(root.parent), i + 1)
+             for p in sorted(root.rglob("*.py")) if p.name != "host_arrays.py"
+             for i, line in enumerate(p.read_text().splitlines()) if pattern.search(line)]
+    assert found == [], found

@@ -14,6 +14,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..errors import UserError
+from ..physics.host_arrays import jit_array
 from ..outdir import atomic_write
 from .config import FitConfig
 from .init import sh_mask
@@ -111,13 +112,13 @@ def load_checkpoint(ctx: FitState, fingerprint: dict):
         raise UserError("%s: unreadable checkpoint (%s)" % (path, exc)) from None
     check_fingerprint(path, meta.get("fingerprint"), fingerprint)
     ctx.model.load_state_dict({k[6:]: v for k, v in data.items() if k.startswith("model/")})
-    ctx.params[ctx.sky_key] = mi.Float(data["sky/sh"])
+    ctx.params[ctx.sky_key] = jit_array(mi.Float, data["sky/sh"])
     ctx.params[ctx.sun_key] = mi.Color3f(*[float(v) for v in data["sky/sun_irradiance"]])
     ctx.params[ctx.sun_dir_key] = mi.Vector3f(*[float(v) for v in data["sky/sun_direction"]])
     ctx.params.update()
-    ctx.response = Response(mi.Float(data["response/range_exponent"]),
-                            mi.Float(data["response/angle_exponent"]),
-                            mi.Float(data["response/beam_gains"]))
+    ctx.response = Response(jit_array(mi.Float, data["response/range_exponent"]),
+                            jit_array(mi.Float, data["response/angle_exponent"]),
+                            jit_array(mi.Float, data["response/beam_gains"]))
     if ctx.object_poses:
         # Corrections fitted before the checkpoint (stage 2 renders the frames with them).
         ctx.object_poses.load_state_dict({k[6:]: v for k, v in data.items() if k.startswith("poses/")})

@@ -141,7 +141,7 @@ def init_sky_from_mask(state: FitState):
     order_max = state.sky_emitter.order
     chosen, _, coeffs = fit_sh_orders(np.concatenate(dirs), np.concatenate(rgb),
                                       max_order=order_max, seed=state.config.seed)
-    state.params[state.sky_key] = mi.Float(pad_sh(coeffs[chosen], order_max).ravel())
+    state.params[state.sky_key] = jit_array(mi.Float, pad_sh(coeffs[chosen], order_max))
     state.params.update()
     state.selection.setdefault("sky_mask", {})["sky_start_order"] = int(chosen)
 
@@ -203,7 +203,7 @@ def init_materials(ctx: FitState, frozen):
             ctx.response.range_exponent = mi.Float(float(res.range_exponent))
             ctx.response.angle_exponent = mi.Float(float(res.angle_exponent))
             gains = np.asarray(res.beam_gains, np.float32)
-            ctx.response.beam_gains = mi.Float(gains)
+            ctx.response.beam_gains = jit_array(mi.Float, gains)
         else:
             info["fixed"] = "the paper's cos/d^2 response"
         # Per-Gaussian LiDAR albedo from the regression where a Gaussian was hit.

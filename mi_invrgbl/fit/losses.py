@@ -60,7 +60,7 @@ def _flat(x):
         return x.array
     if dr.is_array_v(x):
         return x
-    return mi.Float(x)
+    return jit_array(mi.Float, x)
 
 
 def _is_vec3(x):
@@ -79,7 +79,7 @@ def _mask_weights(mask, n_values, name="mask"):
     if isinstance(m, mi.Bool):
         m = dr.select(m, mi.Float(1.0), mi.Float(0.0))
     elif not isinstance(m, mi.Float):
-        m = mi.Float(m)
+        m = jit_array(mi.Float, m)
     w = dr.width(m)
     if w == n_values or w == 1:
         return m

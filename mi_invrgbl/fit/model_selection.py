@@ -19,6 +19,7 @@ import mitsuba as mi
 
 from ..physics import hits as hitlib
 from ..physics.colour import LUMINANCE
+from ..physics.host_arrays import jit_array
 from ..physics.lighting import LightingCache
 from ..physics.sh import num_coeffs
 from .evaluate import score_stage1, score_stage2
@@ -214,10 +215,10 @@ def choose_sky_start(ctx: FitState, choice: LightingChoice) -> LightingChoice:
     ctx.model.push(frames[0].poses, stage=1)
     scores = []
     for _, _, coeffs in candidates:
-        ctx.params[ctx.sky_key] = mi.Float(coeffs.ravel())
+        ctx.params[ctx.sky_key] = jit_array(mi.Float, coeffs)
         ctx.params.update()
         scores.append(score_stage1(ctx, frames))
-    ctx.params[ctx.sky_key] = mi.Float(stage1.ravel())
+    ctx.params[ctx.sky_key] = jit_array(mi.Float, stage1)
     ctx.params.update()
     ok = [i for i, sc in enumerate(scores) if np.isfinite(sc)]
     best = max(ok, key=lambda i: scores[i]) if ok else 0

@@ -35,6 +35,7 @@ import drjit as dr
 import mitsuba as mi
 
 from . import outputs
+from ..physics.host_arrays import jit_array
 from .budget import (OUTPUT_RESERVE, TIMED, Budget, EarlyStop, Replan,
                      overrun_report, plan_stage, position_lr_factor, probe_batch_scale,
                      PLATEAU_LR_FACTOR, PLATEAU_REDUCTIONS, anneal_lr_factor,
@@ -545,7 +546,7 @@ def apply_lighting(ctx: FitState, choice: LightingChoice):
     ctx.use_sun = choice.use_sun
     ctx.sh_order = choice.sh_order
     ctx.sh_mask = sh_mask(choice.sh_order, ctx.sky_emitter.order)
-    ctx.params[ctx.sky_key] = mi.Float(choice.sh_init.ravel())
+    ctx.params[ctx.sky_key] = jit_array(mi.Float, choice.sh_init)
     if choice.use_sun:
         ctx.params[ctx.sun_dir_key] = mi.Vector3f(*choice.sun_direction)
     ctx.params[ctx.sun_key] = mi.Color3f(choice.sun_irradiance)

@@ -100,7 +100,7 @@ class Stage1:
         """Return to a :meth:`snapshot`; Adam starts afresh from it."""
         model, sky, poses = snapshot
         self.model.load_state_dict(model)
-        self.ctx.params[self.ctx.sky_key] = mi.Float(sky)
+        self.ctx.params[self.ctx.sky_key] = jit_array(mi.Float, sky)
         self.ctx.params.update()
         if self.ctx.object_poses:
             self.ctx.object_poses.load_state_dict(poses)

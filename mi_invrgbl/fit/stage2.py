@@ -258,7 +258,7 @@ class Stage2:
         sky = np.array(dr.detach(ctx.params[ctx.sky_key]), np.float32)
 
         def start(d, trust):
-            ctx.params[ctx.sky_key] = mi.Float(sky)
+            ctx.params[ctx.sky_key] = jit_array(mi.Float, sky)
             ctx.params[ctx.sun_dir_key] = mi.Vector3f(*[float(x) for x in d])
             ctx.params.update()
             return self._init_shading(trust_facings=trust)
@@ -631,7 +631,7 @@ class Stage2:
         if "lidar" in out:
             lid = frame.lidar
             obs = jit_array(mi.Float, lid.intensity)
-            hit = mi.Bool(lid.hit.ravel())
+            hit = jit_array(mi.Bool, lid.hit)
             # Normalised to the observed scale: raw return power can be ~1e-3,
             # which would make L_lidar vanish next to L_rgb at the paper's weights.
             inv = 1.0 / ctx.intensity_scale

@@ -31,6 +31,8 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
+from .host_arrays import jit_array
+
 #: Smallest distance used in ``d^-b`` (metres).
 MIN_DISTANCE = 1e-3
 #: Smallest cosine used in ``log cos`` (``cos <= 0`` itself returns nothing).
@@ -146,7 +148,7 @@ class ReturnModel:
     def logit(self, distance, cos_theta, albedo, beam):
         """Dr.Jit log-odds of a return."""
         n = len(self.beam_bias)
-        bias = dr.gather(mi.Float, mi.Float(np.asarray(self.beam_bias, np.float32)),
+        bias = dr.gather(mi.Float, jit_array(mi.Float, self.beam_bias),
                          dr.minimum(mi.UInt32(beam), n - 1))
         w = [float(v) for v in self.weights]
         return (bias + w[0] * dr.log(dr.maximum(distance, RETURN_FLOOR))

@@ -9,6 +9,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..physics.host_arrays import jit_array
 from ..physics.sh import (MAX_ORDER, Y0, as_coeffs, eval_sh_numpy, num_coeffs,  # noqa: F401
                  order_from_count, project_sh, sh_basis_numpy, sphere_quadrature)
 
@@ -123,7 +124,7 @@ class SHSunEmitter(mi.Emitter):
             coeffs = np.zeros((num_coeffs(order or 0), 3))
             coeffs[0] = 1.0 / Y0  # a uniform grey sky of radiance 1
         self._order = _check_sh(coeffs, order)
-        self.sh = mi.Float(np.asarray(coeffs, np.float32).ravel())
+        self.sh = jit_array(mi.Float, coeffs)
 
         self.sun_direction = mi.Vector3f(*map(float, _parse_direction(props.get("sun_direction", [0, 0, 1]))))
         self.sun_irradiance = mi.Color3f(*map(float, _parse_irradiance(props.get("sun_irradiance", 0.0))))
