@@ -325,9 +325,10 @@ def retrace_turned(scene, nodes, cache: LightingCache, samples, pattern=0, bounc
             cache.bounce_weight = jit_array(mi.Float, w)
             dr.eval(cache.bounce_target, cache.bounce_source, cache.bounce_weight)
     # A new array rather than a scatter into the cached one: lighting built
-    # before this call may still read the old one. (With the scatter, two
-    # 8-minute KITTI fits died of SIGSEGV rendering the next validation frame
-    # after several refreshes; none of the fits since.)
+    # before this call may still read the old one. It is handed over padded
+    # (:mod:`.host_arrays`): a NumPy buffer that ends at an unmapped page
+    # crashes the next kernel that reads it, the likelier cause of the
+    # SIGSEGVs once blamed on the scatter.
     slots = (turned.astype(np.int64)[:, None] * M + np.arange(M)).ravel()
     vis = np.array(cache.sky_visibility, np.float32)
     vis[slots] = np.array(new_vis, np.float32)
