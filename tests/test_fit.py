@@ -663,6 +663,35 @@ def test_validation_stop_returns_to_the_best_state():
     assert calls == [1, 2, 3]
 
 
+def test_log_cadence_keeps_a_budgeted_stage_s_log_to_its_share():
+    # A fake clock: steps of 0.35 s, log points of 2.2 s (KITTI's stage 1 on
+    # 2 cores). Every 50 steps the points take 11 % of the time; spaced by
+    # their cost, about LOG_SHARE, on multiples of 50, and still a curve.
+    from mi_invrgbl.fit.loop import LOG_SHARE, LogCadence
+
+    def run(share, steps=3000, step_s=0.35, point_s=2.2):
+        now = [0.0]
+        cadence = LogCadence(50, share, clock=lambda: now[0], next_at=50)
+        points, spent = [], 0.0
+        for it in range(1, steps + 1):
+            now[0] += step_s
+            if cadence.due(it):
+                now[0] += point_s
+                spent += point_s
+                cadence.logged(it, point_s)
+                points.append(it)
+        return points, spent / now[0]
+
+    every, share_every = run(None)
+    assert every == list(range(50, 3001, 50)) and share_every > 0.10
+    points, share = run(LOG_SHARE)
+    assert share <= LOG_SHARE * 1.05 and share >= LOG_SHARE / 3, share
+    assert all(p % 50 == 0 for p in points) and len(points) >= 8
+    # Cheap points (a small scene) stay at the configured cadence.
+    cheap, _ = run(LOG_SHARE, point_s=0.001)
+    assert cheap == list(range(50, 3001, 50))
+
+
 def test_validation_stop_lowers_the_rates_at_a_plateau_before_it_stops():
     # A stage that levels off goes back to its best state with every rate
     # PLATEAU_LR_FACTOR lower, PLATEAU_REDUCTIONS times, then stops; the

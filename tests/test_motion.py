@@ -131,3 +131,122 @@ def test_camera_mask_covers_the_box():
     wall = np.array([[12.0, -WALL_Y, 2.0]])
     uv, _, ok = project(wall, np.linalg.inv(cam), K, (320, 120))
     assert ok[0] and mask[int(round(uv[0, 1])), int(round(uv[0, 0]))] == 0
+
+
+# ---------------------------------------------------------------- vehicles standing still
+PARKED_CENTRE = np.array([10.0, -3.0, 0.8])
+PARKED_HALF = np.array([2.0, 0.9, 0.8])
+
+
+def _sweep_with_parked(frame, gap=None):
+    """A sweep of the drive plus a parked box beside the road; with ``gap``
+    a second parked box stands that far beside it (a queue in the next lane)."""
+    origin = np.array([EGO_STEP * frame, 0.0, SENSOR_Z])
+    pts = _sweep(frame)
+    d = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    t = np.linalg.norm(pts, axis=1)
+    o = np.broadcast_to(origin, d.shape)
+    boxes = [(PARKED_CENTRE, PARKED_HALF)]
+    if gap is not None:
+        other = PARKED_CENTRE - np.array([0.0, 2 * PARKED_HALF[1] + gap, 0.0])
+        boxes.append((other, PARKED_HALF))
+    for c, h in boxes:
+        t = np.minimum(t, _slab(o, d, c - h, c + h))
+    return d * t[:, None]
+
+
+def _on_parked(points_world):
+    return np.all(np.abs(points_world - PARKED_CENTRE) <= PARKED_HALF + 0.05, axis=1)
+
+
+@pytest.fixture(scope="module")
+def parked_drive():
+    return [_sweep_with_parked(i) for i in range(N_FRAMES)], _poses()
+
+
+def _with_edge_misses(monkeypatch, share):
+    """The free-space test, plus false 'moved' votes on ``share`` of the
+    parked box's points in every sweep (its edges, seen from a new angle)."""
+    real = motion.dynamic_points
+
+    def dynamic_points(scans, poses, opts=None):
+        out = real(scans, poses, opts)
+        rng = np.random.default_rng(1)
+        for i, s in enumerate(scans):
+            # (the test votes on points above the road only)
+            on = np.nonzero(_on_parked(s + poses[i, :3, 3])
+                            & motion.above_ground(s, opts or motion.MotionOptions()))[0]
+            out[i][rng.choice(on, max(int(share * len(on)), 25), replace=False)] = True
+        return out
+
+    monkeypatch.setattr(motion, "dynamic_points", dynamic_points)
+
+
+def test_a_parked_vehicle_with_a_few_false_moving_points_is_not_masked(parked_drive, monkeypatch):
+    scans, poses = parked_drive
+    before = motion.detect_motion(scans, poses)
+    assert before.standing == []
+    _with_edge_misses(monkeypatch, 0.03)
+    res = motion.detect_motion(scans, poses)
+    # The moving box is still the one node, the parked one stands still...
+    assert len(res.objects) == 1 and len(res.standing) == 1
+    assert res.stats["standing"] == 1
+    track = res.standing[0]
+    assert len(track.clusters) >= motion.MotionOptions().min_frames
+    # ...and none of its points is masked (its false seeds included), while
+    # the moving box's are covered by its node as before.
+    for i, s in enumerate(scans):
+        world = s + poses[i, :3, 3]
+        assert not res.masked[i][_on_parked(world)].any()
+        assert res.dynamic[i][_on_parked(world)].any()
+    # Without the standing test those seeds would be masked.
+    opts = motion.MotionOptions(min_frames=N_FRAMES + 1)
+    res_short = motion.detect_motion(scans, poses, opts)
+    assert res_short.standing == []
+    assert sum(res_short.masked[i][_on_parked(s + poses[i, :3, 3])].sum()
+               for i, s in enumerate(scans)) > 0
+
+
+def test_a_box_moving_with_few_moving_points_is_not_standing():
+    """Candidates that travel (1 m a sweep) are never taken for standing."""
+    drive = [_sweep(i) for i in range(N_FRAMES)]
+    poses = _poses()
+    opts = motion.MotionOptions()
+    candidates = []
+    for i, s in enumerate(drive):
+        world = s + poses[i, :3, 3]
+        on = np.nonzero(_on_box(world, i))[0]
+        candidates.append([motion.Cluster(i, world[on], on)])
+    assert motion.standing_vehicles(candidates, [], [], N_FRAMES, opts) == []
+    # The same clusters held in place stand still.
+    held = [[motion.Cluster(i, c[0].points - [BOX_STEP * i, 0, 0], c[0].point_index)]
+            for i, c in enumerate(candidates)]
+    assert len(motion.standing_vehicles(held, [], [], N_FRAMES, opts)) == 1
+    # A candidate holding points of a node's cluster belongs to the node.
+    node = motion.MotionTrack([c[0] for c in held])
+    assert motion.standing_vehicles(held, [node], [True], N_FRAMES, opts) == []
+
+
+def test_a_queue_of_vehicles_is_split_into_vehicle_sized_candidates():
+    """Two parked boxes 0.8 m apart are one component on the 0.4 m grid;
+    the candidates are found on a finer one, each a single box."""
+    s = _sweep_with_parked(0, gap=0.8)
+    world = s + _poses()[0, :3, 3]
+    opts = motion.MotionOptions()
+    keep = motion.above_ground(s, opts)
+    idx = np.nonzero(keep)[0]
+    w = world[idx]
+    n, lab = motion._components(w[:, :2], opts.cell)
+    on = _on_parked(w)
+    assert not motion.vehicle_sized(w[lab == lab[np.nonzero(on)[0][0]]])
+    seeds = np.zeros(len(w), bool)
+    seeds[np.nonzero(on)[0][:: 12]] = True            # 8 % of the box's points
+    assert seeds.sum() >= opts.min_points
+    found = motion.standing_candidates(0, w, idx, seeds, opts)
+    assert len(found) == 1
+    got = found[0]
+    assert motion.vehicle_sized(got.points)
+    assert _on_parked(got.points).mean() > 0.95 and _on_parked(got.points).sum() >= 0.9 * on.sum()
+    # Too many moving points for a standing vehicle: a moving one's cluster.
+    seeds[np.nonzero(on)[0][:: 2]] = True
+    assert motion.standing_candidates(0, w, idx, seeds, opts) == []

@@ -45,7 +45,7 @@ from .checkpoint import checkpoint_path, fingerprint, load_checkpoint, save_chec
 from .config import FitConfig  # noqa: F401  (the fit's options, imported from here by callers)
 from .evaluate import score_stage1, score_stage2
 from .init import init_materials, init_sky_from_mask, load_state, sh_mask
-from .loop import Interrupted, StageRun, record_point, train
+from .loop import LOG_SHARE, Interrupted, StageRun, record_point, train
 from .model_selection import (SUN_TRIAL_MARGIN, LightingChoice, LobeChoice, choose_lidar_lobe,
                               choose_lighting, choose_render_samples, choose_sky_start, log_lighting,
                               sun_alternative)
@@ -204,6 +204,7 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
                                         lambda v: not moves_with_positions(v))
         run.after_step = after_step
         run.replan = replanner(state, plan, start, started + share)
+        run.log_share = LOG_SHARE
     elif budget is not None:
         # A resumed budgeted fit keeps the batch its plan chose.
         k = int(state.selection.get("budget", {}).get("stage 1", {}).get("batch_scale", 1))
@@ -267,6 +268,7 @@ def fit_materials(state: FitState, stage2, start, checkpoint, budget=None, fresh
             *score_stage2(stage2, state.validation_frames, refresh=True)), keep=stage2.snapshot,
             resume_from=resume_from)
         run.replan = replanner(state, plan, start, t + seconds)
+        run.log_share = LOG_SHARE
     if total > start:
         last = train(state, run, start, total)
         if isinstance(run.stop, ValidationStop):
