@@ -117,10 +117,12 @@ class MotionOptions:
     min_frames: int = 5
     max_residual: float = 0.15
     max_yaw_step_deg: float = 3.0
-    #: metres a track must travel to become a node. 0.3 made a car creeping
-    #: beside the KITTI excerpt's ego vehicle (0.39 m over 24 sweeps) a node
-    #: instead of a mask; the one 30-minute fit of that import scored 21.33 dB
-    #: held-out against 21.70 (README, "Settling the stages"), so 0.5 stays.
+    #: metres a track must travel to become a node (less: masked, or, for a
+    #: vehicle tracked whole, standing still, :func:`standing_vehicles`).
+    #: 0.3 made fragments of a car beside the KITTI excerpt's ego vehicle
+    #: (0.39 m over 24 sweeps by their registration) a node; the one
+    #: 30-minute fit of that import scored 21.33 dB held-out against 21.70
+    #: (README, "Settling the stages"). Tracked whole, that car stands.
     min_travel: float = 0.5
     track_id_base: int = 1000
 
