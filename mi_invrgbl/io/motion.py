@@ -259,6 +259,16 @@ def _components(xy, cell):
     return n, labels[q[:, 1], q[:, 0]]
 
 
+def _seeded_components(world_points, sub, seeds, cell, min_points):
+    """Components (on a ``cell`` grid) of the points ``sub`` (indices) that
+    hold at least ``min_points`` of ``seeds``: (indices, seed share) each."""
+    n, lab = _components(world_points[sub, :2], cell)
+    count = np.bincount(lab, minlength=n)
+    seed_count = np.bincount(lab[seeds[sub]], minlength=n)
+    return [(sub[lab == k], seed_count[k] / count[k])
+            for k in np.nonzero(seed_count >= min_points)[0]]
+
+
 def clusters_of(frame, world_points, index, seeds, opts: MotionOptions) -> list:
     """Clusters of a sweep's moving points. ``world_points``/``index``: the
     sweep's above-ground points; ``seeds``: which of them moved.
@@ -273,17 +283,14 @@ def clusters_of(frame, world_points, index, seeds, opts: MotionOptions) -> list:
     if seeds.sum() < opts.min_points:
         return []
     out = []
-    n, lab = _components(world_points[:, :2], opts.cell)
-    count = np.bincount(lab, minlength=n)
-    seed_count = np.bincount(lab[seeds], minlength=n)
     loose = np.zeros(len(world_points), bool)
-    for k in np.nonzero(seed_count >= opts.min_points)[0]:
-        sel = lab == k
+    for sel, share in _seeded_components(world_points, np.arange(len(world_points)), seeds,
+                                         opts.cell, opts.min_points):
         p = world_points[sel]
-        if seed_count[k] >= MIN_SEED_FRACTION * count[k] and vehicle_sized(p):
+        if share >= MIN_SEED_FRACTION and vehicle_sized(p):
             out.append(Cluster(frame, p, index[sel]))
         else:
-            loose |= sel & seeds
+            loose[sel] |= seeds[sel]
     if loose.sum() >= opts.min_points:
         sub = np.nonzero(loose)[0]
         n2, lab2 = _components(world_points[sub, :2], opts.cell)
@@ -310,12 +317,7 @@ def standing_candidates(frame, world_points, index, seeds, opts: MotionOptions) 
     pending = [(np.arange(len(world_points)), opts.cell)]
     while pending:
         sub, cell = pending.pop()
-        n, lab = _components(world_points[sub, :2], cell)
-        count = np.bincount(lab, minlength=n)
-        seed_count = np.bincount(lab[seeds[sub]], minlength=n)
-        for k in np.nonzero(seed_count >= opts.min_points)[0]:
-            sel = sub[lab == k]
-            share = seed_count[k] / count[k]
+        for sel, share in _seeded_components(world_points, sub, seeds, cell, opts.min_points):
             if vehicle_sized(world_points[sel]):
                 if MIN_STANDING_FRACTION <= share < MIN_SEED_FRACTION:
                     out.append(Cluster(frame, world_points[sel], index[sel]))
