@@ -1132,7 +1132,10 @@ def test_stage2_start_leaves_the_specular_light_out_of_the_albedo(scene_path, tm
     from mi_invrgbl.physics import hits as hitlib
 
     def start(tag):
-        state = load_state(scene_path, small_config(tmp_path / tag, sun="on"), log=lambda *a: None)
+        # One ray per pixel: on this 48 x 16 image nearly every pixel holds
+        # an edge, and averaged over its area none is opaque (alpha > 0.99).
+        state = load_state(scene_path, small_config(tmp_path / tag, sun="on", pixel_grid=1),
+                           log=lambda *a: None)
         runner.apply_lighting(state, runner.choose_lighting(state))
         stage2, frozen = runner.freeze(state, initialise=True)
         si = state.selection["shading_init"]
@@ -1185,3 +1188,50 @@ def test_pixel_rays_at_offsets_within_the_pixel():
     next_left = pixel_rays(sensor, w, h, idx + 1, (zero, mi.Float([0.5, 0.5, 0.5])))
     np.testing.assert_allclose(np.array(right_edge.d), np.array(next_left.d), atol=1e-6)
     assert np.abs(np.array(right_edge.d) - np.array(a.d)).max() > 1e-3
+
+
+def test_pixel_area_hits_average_the_sub_pixel_rays(scene_path, tmp_path):
+    """Stage 2's camera hits merged over a 2 x 2 grid of rays per pixel
+    (:func:`freeze_pixels`) composite what the four sub-ray traces average:
+    every per-hit channel and the sky seen through them. A merged list holds
+    each Gaussian once per pixel, and grid 1 is the centre ray's trace."""
+    from mi_invrgbl.fit.init import load_state
+    from mi_invrgbl.fit.observations import pixel_rays
+    from mi_invrgbl.fit.render import freeze, freeze_pixels, frozen_gaussian_hits
+    from mi_invrgbl.physics import hits as hitlib
+
+    state = load_state(scene_path, small_config(tmp_path), log=lambda *a: None)
+    frame = state.train_frames[0]
+    state.model.push(frame.poses, stage=1)
+    cam, scene = frame.camera, state.scene
+    nodes = hitlib.gaussian_nodes(scene)
+    n = cam.width * cam.height
+
+    def channels(fh, rays):
+        g = frozen_gaussian_hits(nodes, rays, fh)
+        colour = hitlib.gather_attribute(nodes, "albedo", g.node_ids, g.prims, g.active)
+        out = hitlib.composite_front_to_back(g, fh.weight, fh.t_after,
+                                             {"rgb": mi.Color3f(colour), "alpha": 1.0},
+                                             {"rgb": mi.Color3f(dr.select(fh.surface, 0.0, 0.7))})
+        return np.stack([np.array(out["rgb"][c]) for c in range(3)] + [np.array(out["alpha"])], 1)
+
+    merged = freeze_pixels(scene, cam, 2, 32, 1e-2, 1e-4)
+    average, separate = 0.0, 0
+    for v in (0.25, 0.75):
+        for u in (0.25, 0.75):
+            rays = pixel_rays(cam.sensor, cam.width, cam.height, dr.arange(mi.UInt32, n),
+                              (dr.full(mi.Float, u, n), dr.full(mi.Float, v, n)))
+            fh = freeze(scene, rays, 32, 1e-2, 1e-4)
+            average, separate = average + channels(fh, rays) / 4, separate + fh.hit_count
+    got = channels(merged, cam.rays)
+    assert np.all(np.isfinite(got)) and average[:, 3].max() > 0.5      # Gaussians are seen
+    np.testing.assert_allclose(got, average, atol=2e-5)
+    keys = np.array(merged.ray).astype(np.int64) * 10 ** 9 + np.array(merged.prims) * 100 \
+        + np.array(merged.node_ids) % 100
+    assert len(np.unique(keys)) == merged.hit_count
+    assert merged.hit_count < 0.75 * separate          # sub-rays share most Gaussians
+    one = freeze_pixels(scene, cam, 1, 32, 1e-2, 1e-4)
+    np.testing.assert_array_equal(np.array(one.weight),
+                                  np.array(freeze(scene, cam.rays, 32, 1e-2, 1e-4).weight))
+    with pytest.raises(ValueError, match="pixel grid"):
+        freeze_pixels(scene, cam, 9)

@@ -36,6 +36,9 @@ FLAGS = (
     ("--sky-patterns", "sky_patterns",
      "stage 2 turns the sky directions to one of this many patterns each step, so the albedo "
      "fits the sky integral, not one set of M directions (1: one fixed set)", {}),
+    ("--pixel-grid", "pixel_grid",
+     "stage 2 averages each camera pixel over N x N rays, as the camera and eval's box filter "
+     "integrate a pixel (1: one ray through its centre)", {}),
     ("--bounces", "bounces",
      "diffuse bounces of light between Gaussians in the shading (0: direct sun and sky "
      "light only, as in the paper)", {}),
@@ -149,9 +152,12 @@ def config_from_args(args):
         raise UserError("--resume and --overwrite exclude each other")
     for flag, name, _, _ in FLAGS:
         if name in ("stage1_iterations", "stage2_iterations", "fit_width", "lidar_columns",
-                    "batch_rays", "lidar_batch_rays", "samples", "sky_patterns"):
+                    "batch_rays", "lidar_batch_rays", "samples", "sky_patterns", "pixel_grid"):
             if values[name] < (0 if name.startswith("stage") else 1):
                 raise UserError("%s must be positive" % flag)
+    from ..fit.render import MAX_PIXEL_GRID
+    if values["pixel_grid"] > MAX_PIXEL_GRID:
+        raise UserError("--pixel-grid must be in 1..%d (got %r)" % (MAX_PIXEL_GRID, values["pixel_grid"]))
     from ..physics.lighting import MAX_BOUNCES
     if not 0 <= values["bounces"] <= MAX_BOUNCES:
         raise UserError("--bounces must be in 0..%d (got %r)" % (MAX_BOUNCES, values["bounces"]))

@@ -10,7 +10,7 @@ from .losses import LossWeights
 #: cannot be resumed). Iteration counts, logging, output and the options that
 #: only force a selection (whose outcome the checkpoint records) are not among them.
 MODEL_FIELDS = ("batch_rays", "lidar_batch_rays", "fit_width", "lidar_columns", "max_hits", "min_transmittance",
-                "samples", "sky_patterns", "bounces", "shadowing", "rgb_space", "weights", "bilateral_sigma", "slic_size", "lr_scale", "densify_every",
+                "samples", "sky_patterns", "pixel_grid", "bounces", "shadowing", "rgb_space", "weights", "bilateral_sigma", "slic_size", "lr_scale", "densify_every",
                 "densify_until", "prune_opacity", "densify_grad", "densify_fraction", "split_scale",
                 "max_gaussians", "stage1_range", "stage1_drop", "stage1_sky", "seed", "fit_response",
                 "sun_candidates", "sun_gaussians", "per_frame_visibility", "learn_sun_direction",
@@ -67,6 +67,10 @@ class FitConfig:
     #: relighting, and tracing them took 2 GB and, at an 8-minute budget, a
     #: third of stage 2's steps (KITTI, with them: freezing 210 s, 5 steps left).
     sky_patterns: int = 1
+    #: Stage 2 integrates each camera pixel over a ``pixel_grid`` x
+    #: ``pixel_grid`` set of rays (:func:`.render.freeze_pixels`), as the
+    #: camera and ``eval``'s box filter do; 1: one ray through the centre.
+    pixel_grid: int = 2
     weights: LossWeights = field(default_factory=LossWeights)
     bilateral_sigma: float = 0.1
     slic_size: int = 12

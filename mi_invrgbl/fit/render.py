@@ -94,6 +94,84 @@ def freeze(scene, rays, max_hits=32, min_transmittance=1e-2, min_weight=1e-4, no
         return fh
 
 
+#: Largest number of sub-pixel rays per pixel side :func:`freeze_pixels` takes.
+MAX_PIXEL_GRID = 4
+
+
+def freeze_pixels(scene, camera, grid=1, max_hits=32, min_transmittance=1e-2, min_weight=1e-4,
+                  nodes=None):
+    """A camera frame's frozen hits integrated over each pixel's area.
+
+    The camera (and ``eval``, which renders with a box filter) averages the
+    light over a pixel; one ray through its centre samples it at a point. A
+    stage 2 fitted to centre rays fits the albedo to a point sample of a
+    pixel's average and then renders blurred once more where ``eval``
+    integrates the pixel. With ``grid`` > 1 the frame is traced at a
+    ``grid`` x ``grid`` stratified set of positions in every pixel and the
+    hits are merged per pixel: each Gaussian's weight is its mean over the
+    sub-rays (0 where a sub-ray misses it), its distance the weighted mean,
+    and the transmittance left to the sky the mean over the sub-rays (0
+    behind an opaque surface). Rendering the merged list is then the pixel's
+    box-filtered average, with the shading evaluated along the centre ray's
+    direction (``camera.rays``; the directions within a pixel differ by a
+    fraction of a degree). Neighbouring sub-rays mostly meet the same
+    Gaussians, so the merged list is far shorter than the ``grid``² lists
+    together (1.26x the centre ray's hits on a KITTI frame at 2 x 2).
+
+    ``camera``: a :class:`~.observations.CameraObservation` (sensor, size,
+    centre rays). ``grid`` 1 is :func:`freeze` of the centre rays.
+    """
+    grid = int(grid)
+    if not 1 <= grid <= MAX_PIXEL_GRID:
+        raise ValueError("pixel grid must be in 1..%d (got %r)" % (MAX_PIXEL_GRID, grid))
+    if grid == 1:
+        return freeze(scene, camera.rays, max_hits, min_transmittance, min_weight, nodes)
+    from .observations import pixel_rays
+    n = camera.width * camera.height
+    index = dr.arange(mi.UInt32, n)
+    share = 1.0 / grid ** 2
+    parts, sky_t, opaque = [], np.zeros(n, np.float64), np.ones(n, bool)
+    with dr.suspend_grad():
+        nodes = hitlib.gaussian_nodes(scene) if nodes is None else nodes
+        for v in (np.arange(grid) + 0.5) / grid:
+            for u in (np.arange(grid) + 0.5) / grid:
+                rays = pixel_rays(camera.sensor, camera.width, camera.height, index,
+                                  (dr.full(mi.Float, float(u), n), dr.full(mi.Float, float(v), n)))
+                fh = freeze(scene, rays, max_hits, min_transmittance, min_weight, nodes)
+                keep = np.array(fh.node_ids) != 0       # freeze keeps one empty slot when nothing is hit
+                parts.append([np.array(a)[keep] for a in (fh.ray, fh.node_ids, fh.prims,
+                                                           fh.weight, fh.t)])
+                surface = np.array(fh.surface, bool)
+                sky_t += np.where(surface, 0.0, np.array(fh.t_after, np.float64)) * share
+                opaque &= surface
+    ray, node, prim, weight, t = (np.concatenate([p[i] for p in parts]) for i in range(5))
+    if ray.size == 0:
+        hits = tuple(np.zeros(1, dt) for dt in (np.uint32,) * 4)
+        weight_m, t_m = np.zeros(1, np.float32), np.zeros(1, np.float32)
+        ray_m, node_m, prim_m, slot = hits
+    else:
+        node_ids, node_rank = np.unique(node, return_inverse=True)
+        key = ((ray.astype(np.int64) * len(node_ids) + node_rank) * (int(prim.max()) + 1)
+               + prim.astype(np.int64))
+        _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+        w = weight.astype(np.float64) * share
+        weight_m = np.bincount(inverse, w)
+        t_m = np.bincount(inverse, w * t) / np.maximum(weight_m, 1e-30)
+        ray_m, node_m, prim_m = ray[first], node[first], prim[first]
+        # Keys sort by ray first: a hit's rank within its ray is its position
+        # less the ray's first position.
+        rank = np.arange(ray_m.size) - np.searchsorted(ray_m, ray_m, side="left")
+        slot = ray_m.astype(np.int64) * grid ** 2 * max_hits + rank
+        weight_m, t_m = weight_m.astype(np.float32), t_m.astype(np.float32)
+    fh = FrozenHits(n, grid ** 2 * int(max_hits), mi.UInt32(ray_m.astype(np.uint32)),
+                    mi.UInt32(np.asarray(slot).astype(np.uint32)),
+                    mi.UInt32(node_m.astype(np.uint32)), mi.UInt32(prim_m.astype(np.uint32)),
+                    mi.Float(weight_m), mi.Float(t_m), mi.Float(sky_t.astype(np.float32)),
+                    mi.Bool(opaque))
+    dr.eval(fh.ray, fh.slot, fh.node_ids, fh.prims, fh.weight, fh.t, fh.t_after, fh.surface)
+    return fh
+
+
 class VirtualNode:
     """A Gaussian node as the plugins' gathers see it, built from fit variables.
 

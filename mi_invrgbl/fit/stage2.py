@@ -45,8 +45,8 @@ from ..physics.lighting import (GaussianLighting, GaussianTable, LightingCache, 
                                 point_lights, retrace_turned, transmittance)
 from . import losses, shading_init
 from ..physics.fields import BY_NAME, MATERIAL
-from .render import (Response, VirtualNode, camera_shaded, freeze, frozen_gaussian_hits,
-                     lidar_shaded)
+from .render import (Response, VirtualNode, camera_shaded, freeze, freeze_pixels,
+                     frozen_gaussian_hits, lidar_shaded)
 from .steps import safe_step
 from .variables import GaussianVariable, Optimizer, ResponseVariable, SkySH, SunVariable
 from .superpixels import slic_labels
@@ -108,8 +108,9 @@ class FrozenScene:
                 self.geometry[frame.index] = geo
                 self.caches[frame.index] = LightingCache() if dynamic else shared
                 if frame.camera is not None:
-                    self.camera[frame.index] = freeze(ctx.scene, frame.camera.rays, cfg.max_hits,
-                                                      cfg.min_transmittance, min_weight)
+                    self.camera[frame.index] = freeze_pixels(ctx.scene, frame.camera,
+                                                             cfg.pixel_grid, cfg.max_hits,
+                                                             cfg.min_transmittance, min_weight)
                 if frame.lidar is not None:
                     self.lidar[frame.index] = freeze(ctx.scene, frame.lidar.rays, cfg.max_hits,
                                                      cfg.min_transmittance, min_weight)
