@@ -1235,3 +1235,63 @@ def test_pixel_area_hits_average_the_sub_pixel_rays(scene_path, tmp_path):
                                   np.array(freeze(scene, cam.rays, 32, 1e-2, 1e-4).weight))
     with pytest.raises(ValueError, match="pixel grid"):
         freeze_pixels(scene, cam, 9)
+
+
+def test_a_resumed_budgeted_fit_goes_on_as_planned(scene_path, tmp_path, monkeypatch):
+    """A budgeted fit interrupted in stage 1 and resumed goes on with its
+    plan: the learning-rate schedules from where they stood (not from the
+    stage's start), the validation stop and the log's cadence; a fit
+    interrupted in stage 2 resumes with its validation stop too. The
+    budget counts the first run's time."""
+    from mi_invrgbl.fit import runner, stage1, stage2
+    from mi_invrgbl.fit.budget import resumed_plan, resumed_progress
+
+    # The progress a resumed stage goes on from, and its plan.
+    assert resumed_progress(0.4, 100, 100, 200) == pytest.approx(0.4)
+    assert resumed_progress(0.4, 100, 150, 200) == pytest.approx(0.7)
+    assert resumed_progress(0.4, 100, 200, 200) == pytest.approx(1.0)
+    assert resumed_progress(0.9, 100, 100, 100) == 1.0
+    plan = resumed_plan("stage 1", {"seconds_per_iteration": 0.5, "iterations": 200,
+                                    "batch_scale": 2, "eval_every": 16,
+                                    "replanned": {"seconds_per_iteration": 0.25}}, 100, 200)
+    assert (plan.seconds, plan.iterations, plan.batch_scale, plan.eval_every) == (25.0, 200, 2, 16)
+
+    real1, real2 = stage1.Stage1.iteration, stage2.Stage2.iteration
+    stops = {"stage 1": 14, "stage 2": 9}
+
+    def interrupt(real, name):
+        def step(self, it, *a, **k):
+            if it == stops[name] and not k.get("weights") and not a:
+                raise KeyboardInterrupt
+            return real(self, it, *a, **k)
+        return step
+
+    factors = []
+    real_factor = runner.position_lr_factor
+    monkeypatch.setattr(runner, "position_lr_factor", lambda p: factors.append(p) or real_factor(p))
+    cfg = dict(budget_minutes=0.75, eval_every=5, checkpoint_every=1)
+    monkeypatch.setattr(stage1.Stage1, "iteration", interrupt(real1, "stage 1"))
+    metrics = run_fit(scene_path, small_config(tmp_path, **cfg), log=lambda *a: None)
+    assert metrics["interrupted"] is True
+    then = metrics["selection"]["budget"]["stage 1"]["progress"]
+    assert 0.0 < then < 1.0
+    monkeypatch.setattr(stage1.Stage1, "iteration", real1)
+    monkeypatch.setattr(stage2.Stage2, "iteration", interrupt(real2, "stage 2"))
+    factors.clear()
+    lines = []
+    metrics = run_fit(scene_path, small_config(tmp_path, resume=True, **cfg), log=lines.append)
+    text = "\n".join(map(str, lines))
+    assert "stage 1 resumed at iteration" in text
+    # The first resumed step is scheduled at (about) the progress it had
+    # reached, not at 0; the schedules then run on to the stage's end.
+    assert factors and factors[0] >= then - 1e-6 and factors[0] < 1.0
+    assert factors == sorted(factors)
+    assert metrics["interrupted"] is True           # now in stage 2
+    monkeypatch.setattr(stage2.Stage2, "iteration", real2)
+    made = []
+    real_stop = runner.stage2_stop
+    monkeypatch.setattr(runner, "stage2_stop", lambda *a: made.append(a) or real_stop(*a))
+    lines.clear()
+    metrics = run_fit(scene_path, small_config(tmp_path, resume=True, **cfg), log=lines.append)
+    assert metrics["interrupted"] is False
+    assert "stage 2 resumed at iteration" in "\n".join(map(str, lines)) and made

@@ -108,6 +108,35 @@ def plan_stage(name, seconds, seconds_per_iteration, done=0, batched=True) -> St
                      max(MIN_EVAL_INTERVAL, total // EVALUATIONS))
 
 
+def resumed_plan(name, record, start, total) -> StagePlan:
+    """The plan of a budgeted stage that ``fit --resume`` continues at
+    iteration ``start``: the iterations and batch its first run planned
+    (``record``, the stage's entry in metrics.json's ``selection.budget``,
+    saved with the checkpoint), and as many seconds as its remaining
+    ``total - start`` iterations took there (the re-timed speed where the
+    stage was re-timed). The stage's time in the first run is not in the
+    checkpoint; its iterations are."""
+    timed = record.get("replanned", {}).get("seconds_per_iteration",
+                                            record.get("seconds_per_iteration", 0.0))
+    spi = max(float(timed or 0.0), 1e-6)
+    eval_every = int(record.get("eval_every", max(MIN_EVAL_INTERVAL, total // EVALUATIONS)))
+    return StagePlan(name, max(0, total - start) * spi, spi, int(total),
+                     int(record.get("batch_scale", 1)), max(1, eval_every))
+
+
+def resumed_progress(progress_then, start, it, total):
+    """A resumed stage's progress (0..1) at iteration ``it``: from
+    ``progress_then``, where its schedules stood at the checkpoint's
+    iteration ``start`` (:func:`stage_progress`, which may run ahead of the
+    iterations where the stage's time ran out first), on to 1 at ``total``,
+    so a resumed stage 1 goes on at the learning rates it had reached
+    rather than at its start's."""
+    p0 = min(1.0, max(0.0, progress_then))
+    if total <= start:
+        return 1.0
+    return min(1.0, p0 + (1.0 - p0) * max(0, it - start) / (total - start))
+
+
 #: Batch scales a budgeted stage 1 tries at its start, in order.
 PROBE_SCALES = (4, 16)
 #: A larger batch is kept when it gives this much more rays per second

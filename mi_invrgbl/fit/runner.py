@@ -40,7 +40,7 @@ from .budget import (OUTPUT_RESERVE, TIMED, Budget, EarlyStop, Replan,
                      overrun_report, plan_stage, position_lr_factor, probe_batch_scale,
                      PLATEAU_LR_FACTOR, PLATEAU_REDUCTIONS, anneal_lr_factor,
                      small_budget_warning, stage1_seconds, stage_progress, time_iterations,
-                     fixed_costs)
+                     fixed_costs, resumed_plan, resumed_progress)
 from .checkpoint import checkpoint_path, fingerprint, load_checkpoint, save_checkpoint
 from .config import FitConfig  # noqa: F401  (the fit's options, imported from here by callers)
 from .evaluate import score_stage1, score_stage2
@@ -75,6 +75,10 @@ def run_fit(scene_path, config: FitConfig, log=print):
         stage, start = meta["stage"], int(meta["iteration"])
         state.wall_offset = float(meta.get("wall_s", 0.0))
         log("[fit] resuming from %s, %s iteration %d" % (checkpoint_path(state), stage, start))
+    if budget is not None and config.resume:
+        # A resumed fit's budget is the whole fit's: the runs before took
+        # ``wall_offset`` of it.
+        budget = Budget(config.budget_minutes, t_start - state.wall_offset)
     stage2, lighting = None, None
     try:
         if stage == "stage 1":
@@ -190,26 +194,27 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
             state.log(warning)
         total = plan.iterations
         started = t     # (``t`` is reused below, after the stage)
-        def resume_from(snapshot, damping):
-            s1.restore(snapshot)
-            s1.opt.set_damping(damping)
-        run.stop = ValidationStop(state, plan, started + share,
-                                  lambda: score_stage1(state, state.validation_frames),
-                                  keep=s1.snapshot, resume_from=resume_from)
-        def after_step(it, total):
-            progress = stage_progress(it, total, time.perf_counter() - started, share)
-            s1.after_step(it, total, progress)
-            s1.opt.scale_learning_rates(position_lr_factor(progress), moves_with_positions)
-            s1.opt.scale_learning_rates(anneal_lr_factor(progress),
-                                        lambda v: not moves_with_positions(v))
-        run.after_step = after_step
+        run.stop = stage1_stop(state, s1, plan, started + share)
+        run.after_step = stage1_schedule(state, s1, lambda it, total: stage_progress(
+            it, total, time.perf_counter() - started, share))
         run.replan = replanner(state, plan, start, started + share)
         run.log_share = LOG_SHARE
-    elif budget is not None:
-        # A resumed budgeted fit keeps the batch its plan chose.
-        k = int(state.selection.get("budget", {}).get("stage 1", {}).get("batch_scale", 1))
+    elif budget is not None and "stage 1" in state.selection.get("budget", {}):
+        # A resumed budgeted stage keeps the batch and iterations its plan
+        # chose and goes on as planned: its schedules from where they stood
+        # at the checkpoint, the validation stop, the log's cadence.
+        record = state.selection["budget"]["stage 1"]
+        k = int(record.get("batch_scale", 1))
         s1.batch_camera *= k
         s1.batch_lidar *= k
+        plan = resumed_plan("stage 1", record, start, total)
+        then = float(record.get("progress", start / max(total, 1)))
+        run.stop = stage1_stop(state, s1, plan, time.perf_counter() + plan.seconds)
+        run.after_step = stage1_schedule(state, s1, lambda it, total: resumed_progress(
+            then, start, it, total))
+        run.log_share = LOG_SHARE
+        state.log("[fit] budget: stage 1 resumed at iteration %d of %d (schedules at %.0f %% "
+                  "of the stage)" % (start, total, 100 * then))
     if total > start:
         last = train(state, run, start, total)
         if isinstance(run.stop, ValidationStop):
@@ -224,6 +229,33 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
                                             or "none", time.perf_counter() - t))
     s1.pull()
     state.model.push(state.train_frames[0].poses, stage=1)
+
+
+def stage1_stop(state: FitState, s1, plan, deadline):
+    """A budgeted stage 1's :class:`ValidationStop` (its deadline, early
+    stop on the validation frames, plateaus, the best state kept)."""
+    def resume_from(snapshot, damping):
+        s1.restore(snapshot)
+        s1.opt.set_damping(damping)
+    return ValidationStop(state, plan, deadline, lambda: score_stage1(state, state.validation_frames),
+                          keep=s1.snapshot, resume_from=resume_from)
+
+
+def stage1_schedule(state: FitState, s1, progress_at):
+    """A budgeted stage 1's work after each step at its progress
+    ``progress_at(it, total)`` (0..1): densification while it lasts, the
+    position learning rate's decay, the other rates' annealing. The
+    progress is kept in the stage's budget record, which the checkpoint
+    saves, so a resumed stage goes on from it (:func:`~.budget.resumed_progress`)."""
+    def after_step(it, total):
+        progress = progress_at(it, total)
+        s1.after_step(it, total, progress)
+        s1.opt.scale_learning_rates(position_lr_factor(progress), moves_with_positions)
+        s1.opt.scale_learning_rates(anneal_lr_factor(progress),
+                                    lambda v: not moves_with_positions(v))
+        state.selection.setdefault("budget", {}).setdefault("stage 1", {})["progress"] = \
+            round(progress, 5)
+    return after_step
 
 
 def fit_materials(state: FitState, stage2, start, checkpoint, budget=None, fresh=None):
@@ -261,14 +293,23 @@ def fit_materials(state: FitState, stage2, start, checkpoint, budget=None, fresh
                       % (seconds, budget.share("stage 2"), t - budget.t_start))
         state.selection.setdefault("budget", {})["stage 2"] = plan.as_dict()
         total = plan.iterations
-        def resume_from(snapshot, damping):
-            stage2.restore(snapshot)
-            stage2.opt.set_damping(damping)
-        run.stop = ValidationStop(state, plan, t + seconds, lambda: validation_score(
-            *score_stage2(stage2, state.validation_frames, refresh=True)), keep=stage2.snapshot,
-            resume_from=resume_from)
+        run.stop = stage2_stop(state, stage2, plan, t + seconds)
         run.replan = replanner(state, plan, start, t + seconds)
         run.log_share = LOG_SHARE
+    elif budget is not None and "stage 2" in state.selection.get("budget", {}):
+        # A resumed budgeted stage 2 goes on as planned, at the learning
+        # rates its plateaus had lowered them to (the best state before the
+        # checkpoint is not saved: the stop keeps the best from here on).
+        record = state.selection["budget"]["stage 2"]
+        plan = resumed_plan("stage 2", record, start, total)
+        run.stop = stage2_stop(state, stage2, plan, time.perf_counter() + plan.seconds)
+        lowered = [p["at"] for p in record.get("plateaus", [])]
+        if lowered:
+            run.stop.plateaus = list(lowered)
+            run.stop.damping = PLATEAU_LR_FACTOR ** len(lowered)
+            stage2.opt.set_damping(run.stop.damping)
+        run.log_share = LOG_SHARE
+        state.log("[fit] budget: stage 2 resumed at iteration %d of %d" % (start, total))
     if total > start:
         last = train(state, run, start, total)
         if isinstance(run.stop, ValidationStop):
@@ -284,6 +325,17 @@ def fit_materials(state: FitState, stage2, start, checkpoint, budget=None, fresh
         state.iterations["stage 2"] = start
     follow_normals(state, stage2)
     return max(start, total)
+
+
+def stage2_stop(state: FitState, stage2, plan, deadline):
+    """A budgeted stage 2's :class:`ValidationStop`, scoring the validation
+    frames with the lighting caches following the learned normals."""
+    def resume_from(snapshot, damping):
+        stage2.restore(snapshot)
+        stage2.opt.set_damping(damping)
+    return ValidationStop(state, plan, deadline, lambda: validation_score(
+        *score_stage2(stage2, state.validation_frames, refresh=True)), keep=stage2.snapshot,
+        resume_from=resume_from)
 
 
 def follow_normals(state: FitState, stage2):
