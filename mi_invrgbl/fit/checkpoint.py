@@ -47,9 +47,8 @@ def fingerprint(ctx: FitState) -> dict:
 #: Options a checkpoint may predate whose value then was another option's.
 PREDATED = {"lidar_batch_rays": "batch_rays"}
 #: Options a checkpoint may predate whose value then was not today's default
-#: (the camera loss compared in linear light before ``rgb_space`` existed;
-#: stage 2 traced one ray through each pixel's centre before ``pixel_grid``).
-PREDATED_VALUES = {"rgb_space": "linear", "pixel_grid": 1}
+#: (the camera loss compared in linear light before ``rgb_space`` existed).
+PREDATED_VALUES = {"rgb_space": "linear"}
 
 
 def check_fingerprint(path, saved, current):
