@@ -331,6 +331,10 @@ def test_cli_flags_reach_the_config():
     assert (cfg.batch_rays, cfg.lidar_batch_rays) == (2048, 512)
     with pytest.raises(UserError, match="--lidar-batch must be positive"):
         parse("--lidar-batch", "0")
+    assert default.pixel_grid == 1 and parse("--pixel-grid", "2").pixel_grid == 2
+    for bad in ("0", "5"):
+        with pytest.raises(UserError, match="--pixel-grid must be"):
+            parse("--pixel-grid", bad)
 
 
 def test_checkpoint_predating_an_option_resumes_with_its_value_then():

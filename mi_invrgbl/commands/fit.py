@@ -155,7 +155,7 @@ def config_from_args(args):
                     "batch_rays", "lidar_batch_rays", "samples", "sky_patterns", "pixel_grid"):
             if values[name] < (0 if name.startswith("stage") else 1):
                 raise UserError("%s must be positive" % flag)
-    from ..fit.render import MAX_PIXEL_GRID
+    from ..fit.config import MAX_PIXEL_GRID
     if values["pixel_grid"] > MAX_PIXEL_GRID:
         raise UserError("--pixel-grid must be in 1..%d (got %r)" % (MAX_PIXEL_GRID, values["pixel_grid"]))
     from ..physics.lighting import MAX_BOUNCES

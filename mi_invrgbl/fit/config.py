@@ -18,6 +18,10 @@ MODEL_FIELDS = ("batch_rays", "lidar_batch_rays", "fit_width", "lidar_columns", 
                 "object_poses")
 
 
+#: Largest ``pixel_grid`` (rays per pixel side in stage 2's camera hits).
+MAX_PIXEL_GRID = 4
+
+
 @dataclass
 class FitConfig:
     output: str = ""

@@ -21,6 +21,7 @@ import mitsuba as mi
 from ..physics import brdf, hits as hitlib
 from ..physics.lighting import environment_radiance
 from ..physics.lidar_response import LidarResponse as Response  # noqa: F401 (the fit's name)
+from .config import MAX_PIXEL_GRID
 
 
 # ---------------------------------------------------------------- stage 1
@@ -92,10 +93,6 @@ def freeze(scene, rays, max_hits=32, min_transmittance=1e-2, min_weight=1e-4, no
                         mi.Float(t_after), hl.surface_valid & hl.surface_interaction(rays).is_valid())
         dr.eval(fh.ray, fh.slot, fh.node_ids, fh.prims, fh.weight, fh.t, fh.t_after, fh.surface)
         return fh
-
-
-#: Largest number of sub-pixel rays per pixel side :func:`freeze_pixels` takes.
-MAX_PIXEL_GRID = 4
 
 
 def freeze_pixels(scene, camera, grid=1, max_hits=32, min_transmittance=1e-2, min_weight=1e-4,
