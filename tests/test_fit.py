@@ -1299,3 +1299,23 @@ def test_a_resumed_budgeted_fit_goes_on_as_planned(scene_path, tmp_path, monkeyp
     metrics = run_fit(scene_path, small_config(tmp_path, resume=True, **cfg), log=lines.append)
     assert metrics["interrupted"] is False
     assert "stage 2 resumed at iteration" in "\n".join(map(str, lines)) and made
+
+
+def test_pixel_area_hits_of_a_frame_that_sees_no_gaussian(scene_path, tmp_path):
+    """A camera turned away from every Gaussian: the merged list holds one
+    inactive entry (as a centre-ray freeze does) and the sky is seen whole."""
+    from types import SimpleNamespace
+    from mi_invrgbl.fit.init import load_state
+    from mi_invrgbl.fit.observations import camera_rays
+    from mi_invrgbl.fit.render import freeze_pixels
+
+    state = load_state(scene_path, small_config(tmp_path), log=lambda *a: None)
+    state.model.push(state.train_frames[0].poses, stage=1)
+    sensor = mi.load_dict({"type": "perspective", "fov": 30, "to_world": mi.ScalarTransform4f().look_at(
+        origin=[0, 0, 500], target=[0, 0, 1000], up=[0, 1, 0]),
+        "film": {"type": "hdrfilm", "width": 6, "height": 4}})
+    cam = SimpleNamespace(sensor=sensor, width=6, height=4, rays=camera_rays(sensor, 6, 4))
+    fh = freeze_pixels(state.scene, cam, 2)
+    assert np.all(np.array(fh.node_ids) == 0)
+    np.testing.assert_allclose(np.array(fh.t_after), 1.0)
+    assert fh.n_rays == 24 and not np.any(np.array(fh.surface))
