@@ -1273,7 +1273,9 @@ def test_a_resumed_budgeted_fit_goes_on_as_planned(scene_path, tmp_path, monkeyp
     factors = []
     real_factor = runner.position_lr_factor
     monkeypatch.setattr(runner, "position_lr_factor", lambda p: factors.append(p) or real_factor(p))
-    cfg = dict(budget_minutes=0.75, eval_every=5, checkpoint_every=1)
+    # No sun trial: its steps are stage-2 iterations too, and a trial
+    # interrupted restarts stage 2 from its start, not mid-way.
+    cfg = dict(budget_minutes=0.75, eval_every=5, checkpoint_every=1, sun_trial_iterations=0)
     monkeypatch.setattr(stage1.Stage1, "iteration", interrupt(real1, "stage 1"))
     metrics = run_fit(scene_path, small_config(tmp_path, **cfg), log=lambda *a: None)
     assert metrics["interrupted"] is True

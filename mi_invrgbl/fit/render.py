@@ -21,6 +21,7 @@ import mitsuba as mi
 from ..physics import brdf, hits as hitlib
 from ..physics.lighting import environment_radiance
 from ..physics.lidar_response import LidarResponse as Response  # noqa: F401 (the fit's name)
+from ..physics.host_arrays import jit_array
 from .config import MAX_PIXEL_GRID
 
 
@@ -160,11 +161,10 @@ def freeze_pixels(scene, camera, grid=1, max_hits=32, min_transmittance=1e-2, mi
         rank = np.arange(ray_m.size) - np.searchsorted(ray_m, ray_m, side="left")
         slot = ray_m.astype(np.int64) * grid ** 2 * max_hits + rank
         weight_m, t_m = weight_m.astype(np.float32), t_m.astype(np.float32)
-    fh = FrozenHits(n, grid ** 2 * int(max_hits), mi.UInt32(ray_m.astype(np.uint32)),
-                    mi.UInt32(np.asarray(slot).astype(np.uint32)),
-                    mi.UInt32(node_m.astype(np.uint32)), mi.UInt32(prim_m.astype(np.uint32)),
-                    mi.Float(weight_m), mi.Float(t_m), mi.Float(sky_t.astype(np.float32)),
-                    mi.Bool(opaque))
+    fh = FrozenHits(n, grid ** 2 * int(max_hits), jit_array(mi.UInt32, ray_m),
+                    jit_array(mi.UInt32, slot), jit_array(mi.UInt32, node_m),
+                    jit_array(mi.UInt32, prim_m), jit_array(mi.Float, weight_m),
+                    jit_array(mi.Float, t_m), jit_array(mi.Float, sky_t), jit_array(mi.Bool, opaque))
     dr.eval(fh.ray, fh.slot, fh.node_ids, fh.prims, fh.weight, fh.t, fh.t_after, fh.surface)
     return fh
 
