@@ -953,7 +953,7 @@ def test_a_budget_below_the_fixed_costs_is_reported(scene_path, tmp_path):
 
 def test_sun_trial_keeps_to_its_share_of_a_budget(scene_path, tmp_path, monkeypatch):
     # Under a budget the trial of a narrowly rejected sun takes at most
-    # SUN_TRIAL_SHARE of stage 2's share, however many iterations it may run.
+    # SUN_TRIAL_STEPS of stage 2's share, however many iterations it may run.
     from mi_invrgbl.fit import runner
     real_choose = runner.choose_lighting
 
@@ -966,13 +966,13 @@ def test_sun_trial_keeps_to_its_share_of_a_budget(scene_path, tmp_path, monkeypa
 
     monkeypatch.setattr(runner, "choose_lighting", narrowly_rejected)
     # (However little of stage 2's share this tiny budget leaves it.)
-    monkeypatch.setattr(runner.Budget, "sun_trial_fits", lambda self: True)
+    monkeypatch.setattr(runner.Budget, "sun_trial_fits", lambda self, *a: True)
     budget = 0.75
     metrics = run_fit(scene_path, small_config(tmp_path, budget_minutes=budget, eval_every=5,
                                                sun_trial_iterations=100000), log=lambda *a: None)
     t = metrics["selection"]["sun"]["trial"]
     from mi_invrgbl.fit.budget import SHARES
-    limit = runner.SUN_TRIAL_SHARE * SHARES["stage 2"] * 60 * budget
+    limit = runner.SUN_TRIAL_STEPS * SHARES["stage 2"] * 60 * budget
     assert 0 < t["iterations"] < 100000
     # The sun's start is counted within the limit; the rest is split between
     # the two candidates' steps (plus scoring both and one step past a deadline).
@@ -993,10 +993,16 @@ def test_no_sun_trial_where_stage2_has_less_than_its_share_left(scene_path, tmp_
     late = Budget(8.0, now - (480.0 - 100.0))       # 100 s left
     early = Budget(8.0, now - (480.0 - 300.0))      # 300 s left
     assert not late.sun_trial_fits() and early.sun_trial_fits()
+    # The trial's own start and scores (estimated as what freezing took)
+    # must leave stage 2 half its share: KITTI at 8 minutes had its whole
+    # share (144 s) left, freezing had taken 85 s, and the trial took 126 s.
+    just = Budget(8.0, now - (480.0 - 170.0))       # stage 2's share and a second left
+    assert just.sun_trial_fits() and not just.sun_trial_fits(85.0)
+    assert early.sun_trial_fits(85.0) and not early.sun_trial_fits(200.0)
     assert late.stage2_left() == pytest.approx(100.0 - OUTPUT_RESERVE * 480.0, abs=1.0)
 
     monkeypatch.setattr(runner, "choose_lighting", narrow_sun_rejection(runner.choose_lighting))
-    monkeypatch.setattr(runner.Budget, "sun_trial_fits", lambda self: False)
+    monkeypatch.setattr(runner.Budget, "sun_trial_fits", lambda self, *a: False)
     trials = []
     monkeypatch.setattr(runner, "sun_trial", lambda *a, **k: trials.append(a) or (_ for _ in ()).throw(
         AssertionError("the trial ran")))

@@ -36,7 +36,7 @@ import mitsuba as mi
 
 from . import outputs
 from ..physics.host_arrays import jit_array
-from .budget import (OUTPUT_RESERVE, TIMED, Budget, EarlyStop, Replan,
+from .budget import (OUTPUT_RESERVE, SUN_TRIAL_STEPS, TIMED, Budget, EarlyStop, Replan,
                      overrun_report, plan_stage, position_lr_factor, probe_batch_scale,
                      PLATEAU_LR_FACTOR, PLATEAU_REDUCTIONS, anneal_lr_factor,
                      small_budget_warning, stage1_seconds, stage_progress, time_iterations,
@@ -98,9 +98,12 @@ def run_fit(scene_path, config: FitConfig, log=print):
             # (A fit resumed from stage 2's first checkpoint keeps the test's
             # decision: the trial needs the lighting choice of this run.)
             alternative = sun_alternative(state, lighting)
-        if alternative is not None and budget is not None and not budget.sun_trial_fits():
-            state.log("[fit] sun trial skipped: stage 2 has %.0f s of its %.0f s share left; "
-                      "the sun test's decision stands" % (budget.stage2_left(), budget.share("stage 2")))
+        if alternative is not None and budget is not None \
+                and not budget.sun_trial_fits(state.times.get("freeze", 0.0)):
+            state.log("[fit] sun trial skipped: stage 2 has %.0f s of its %.0f s share left, too "
+                      "little for the trial's steps and its start (about what freezing took, "
+                      "%.0f s); the sun test's decision stands"
+                      % (budget.stage2_left(), budget.share("stage 2"), state.times.get("freeze", 0.0)))
             state.selection["sun"]["trial"] = {"skipped": True,
                                                "stage2_seconds_left": round(budget.stage2_left(), 1)}
             alternative = None
@@ -109,7 +112,7 @@ def run_fit(scene_path, config: FitConfig, log=print):
             # count, so it never runs more than the stage would.
             start = config.sun_trial_iterations if budget is not None else \
                 min(config.sun_trial_iterations, config.stage2_iterations)
-            limit = None if budget is None else SUN_TRIAL_SHARE * budget.share("stage 2")
+            limit = None if budget is None else SUN_TRIAL_STEPS * budget.share("stage 2")
             try:
                 stage2, start = sun_trial(state, frozen, stage2, lighting, alternative, start, limit)
             except KeyboardInterrupt:
@@ -511,10 +514,6 @@ def start_stage2(state: FitState, frozen, initialise=True):
     return stage2
 
 
-#: Under a budget the sun trial takes at most this share of stage 2's time
-#: (both candidates together): at 100 iterations each it once took 221 s of
-#: an 8-minute KITTI fit and left stage 2 none of its 144 s.
-SUN_TRIAL_SHARE = 1.0 / 3.0
 
 
 def sun_trial(state: FitState, frozen, stage2, lighting: LightingChoice,
