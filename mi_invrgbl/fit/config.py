@@ -77,10 +77,10 @@ class FitConfig:
     #: Off by default: at 2 x 2, KITTI at 30 minutes scored 21.99 dB (one
     #: run; 21.81-21.90 at 1 x 1), but its stage 1 had ended 0.1-0.2 dB
     #: higher on the validation frames than in those runs, and eval less
-    #: stage 1's validation score was -0.22 dB either way; the street at 8
-    #: minutes kept its PSNR (28.54 against 28.53) while freezing took 65 s
-    #: instead of 41, stage 2 ran 92 steps instead of 248 and the albedo
-    #: RMSE rose from 0.173 to 0.207.
+    #: stage 1's validation score was -0.23 dB (-0.17 to -0.28 at 1 x 1);
+    #: the street at 8 minutes kept its PSNR (28.54 against 28.53) while
+    #: freezing took 65 s instead of 41, stage 2 ran 92 steps instead of
+    #: 248 and the albedo RMSE rose from 0.173 to 0.207.
     pixel_grid: int = 1
     weights: LossWeights = field(default_factory=LossWeights)
     bilateral_sigma: float = 0.1
