@@ -124,7 +124,7 @@ def freeze_pixels(scene, camera, grid=1, max_hits=32, min_transmittance=1e-2, mi
         raise ValueError("pixel grid must be in 1..%d (got %r)" % (MAX_PIXEL_GRID, grid))
     if grid == 1:
         return freeze(scene, camera.rays, max_hits, min_transmittance, min_weight, nodes)
-    from .observations import pixel_rays
+    from .observations import pixel_rays   # (observations imports this module)
     n = camera.width * camera.height
     index = dr.arange(mi.UInt32, n)
     share = 1.0 / grid ** 2
@@ -144,9 +144,9 @@ def freeze_pixels(scene, camera, grid=1, max_hits=32, min_transmittance=1e-2, mi
                 opaque &= surface
     ray, node, prim, weight, t = (np.concatenate([p[i] for p in parts]) for i in range(5))
     if ray.size == 0:
-        hits = tuple(np.zeros(1, dt) for dt in (np.uint32,) * 4)
-        weight_m, t_m = np.zeros(1, np.float32), np.zeros(1, np.float32)
-        ray_m, node_m, prim_m, slot = hits
+        # No sub-ray met a Gaussian: one inactive entry (node id 0), as freeze keeps.
+        ray_m = node_m = prim_m = slot = np.zeros(1, np.uint32)
+        weight_m = t_m = np.zeros(1, np.float32)
     else:
         node_ids, node_rank = np.unique(node, return_inverse=True)
         key = ((ray.astype(np.int64) * len(node_ids) + node_rank) * (int(prim.max()) + 1)
