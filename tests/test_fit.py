@@ -625,13 +625,17 @@ def test_validation_stop_returns_to_the_best_state():
     import types
     from mi_invrgbl.fit.budget import PATIENCE
     from mi_invrgbl.fit.runner import ValidationStop
+    # A clock that stands still: these stages' steps cost nothing, so any
+    # score would look expensive next to them and be spaced out.
+    def still():
+        return 0.0
     scores = {1: 20.0, 2: 22.0, 3: 21.0, 4: 20.5, 5: 20.2, 6: 20.0}
     lines = []
     state = types.SimpleNamespace(validation_frames=[object()], selection={}, log=lines.append)
-    plan = types.SimpleNamespace(eval_every=1)
+    plan = types.SimpleNamespace(eval_every=1, name="stage 1")
     now = {"it": 0}
     stop = ValidationStop(state, plan, float("inf"), lambda: scores[now["it"]],
-                          keep=lambda: "state@%d" % now["it"])
+                          keep=lambda: "state@%d" % now["it"], clock=still)
     reasons = []
     for it in range(1, 7):
         now["it"] = it
@@ -645,7 +649,8 @@ def test_validation_stop_returns_to_the_best_state():
     record = state.selection["budget"]["stage 1"]["best_validation"]
     assert record["iteration"] == 2 and record["kept"] == "best" and record["last_score"] < 22.0
     # Rising to the end: nothing to go back to.
-    stop = ValidationStop(state, plan, float("inf"), lambda: float(now["it"]), keep=lambda: now["it"])
+    stop = ValidationStop(state, plan, float("inf"), lambda: float(now["it"]), keep=lambda: now["it"],
+                          clock=still)
     for it in range(1, 4):
         now["it"] = it
         assert stop(it) is None
@@ -658,7 +663,7 @@ def test_validation_stop_returns_to_the_best_state():
     def counted():
         calls.append(now["it"])
         return seq[now["it"]]
-    stop = ValidationStop(state, plan, float("inf"), counted, keep=lambda: now["it"])
+    stop = ValidationStop(state, plan, float("inf"), counted, keep=lambda: now["it"], clock=still)
     for it in range(1, 4):
         now["it"] = it
         stop(it)
@@ -696,6 +701,51 @@ def test_log_cadence_keeps_a_budgeted_stage_s_log_to_its_share():
     assert cheap == list(range(50, 3001, 50))
 
 
+def test_validation_scores_keep_to_their_share_of_a_budgeted_stage_1():
+    # A fake clock: KITTI's stage 1 at 8 minutes on 2 cores, steps of 0.5 s,
+    # a validation score of 2 s, the plan's interval 18 steps. Scored on
+    # every multiple of 18 the scores take 18 % of the stage; spaced by
+    # their cost, about VALIDATION_SHARE, still on multiples of 18, the
+    # first on the plan's grid; cheap scores stay on the plan's grid.
+    import types
+    from mi_invrgbl.fit.budget import VALIDATION_SHARE
+    from mi_invrgbl.fit.runner import ValidationStop
+
+    def run(score_s, steps=400, step_s=0.5, every=18, start=0, share=VALIDATION_SHARE):
+        now = [0.0]
+
+        def score():
+            now[0] += score_s
+            return 20.0 + 1e-3 * now[0]     # rising: no plateau, no stop
+        state = types.SimpleNamespace(validation_frames=[object()], selection={}, log=print)
+        plan = types.SimpleNamespace(eval_every=every, name="stage 1")
+        stop = ValidationStop(state, plan, float("inf"), score, share=share, clock=lambda: now[0])
+        scored = []
+        for it in range(start + 1, start + steps + 1):
+            now[0] += step_s
+            before = stop.scored[0]
+            assert stop(it) is None
+            if stop.scored[0] > before:
+                scored.append(it)
+        return scored, stop.scored[1] / now[0], state.selection["budget"]["stage 1"]["validation"]
+
+    scored, share, record = run(2.0)
+    assert all(it % 18 == 0 for it in scored) and scored[0] == 18
+    # (The second score comes on the grid too: the cadence needs two to
+    # measure a step's time; over 400 steps that adds a few tenths of a per cent.)
+    assert share <= VALIDATION_SHARE * 1.2 and 3 <= len(scored) <= 8, (scored, share)
+    assert record["scores"] == len(scored) and abs(record["seconds"] - 2.0 * len(scored)) < 1e-6
+    assert record["every"] > 18
+    cheap, share, _ = run(0.01)
+    assert cheap == list(range(18, 401, 18)) and share < VALIDATION_SHARE
+    # A resumed stage (from iteration 100) scores first on the plan's grid.
+    resumed, _, _ = run(2.0, start=100)
+    assert resumed[0] == 108 and all(it % 18 == 0 for it in resumed)
+    # Without a share (stage 2's stop) every multiple of the interval scores.
+    grid, share, _ = run(2.0, share=None)
+    assert grid == list(range(18, 401, 18)) and share > 0.15
+
+
 def test_validation_stop_lowers_the_rates_at_a_plateau_before_it_stops():
     # A stage that levels off goes back to its best state with every rate
     # PLATEAU_LR_FACTOR lower, PLATEAU_REDUCTIONS times, then stops; the
@@ -703,6 +753,9 @@ def test_validation_stop_lowers_the_rates_at_a_plateau_before_it_stops():
     import types
     from mi_invrgbl.fit.budget import PATIENCE, PLATEAU_LR_FACTOR, PLATEAU_REDUCTIONS
     from mi_invrgbl.fit.runner import ValidationStop
+
+    def still():    # steps that cost nothing: keep the plan's grid
+        return 0.0
     assert PLATEAU_REDUCTIONS == 2
     lines = []
     state = types.SimpleNamespace(validation_frames=[object()], selection={}, log=lines.append)
@@ -714,7 +767,7 @@ def test_validation_stop_lowers_the_rates_at_a_plateau_before_it_stops():
     now = {"it": 0}
     stop = ValidationStop(state, plan, float("inf"), lambda: scores[now["it"] - 1],
                           keep=lambda: "state@%d" % now["it"],
-                          resume_from=lambda kept, damping: resumed.append((kept, damping)))
+                          resume_from=lambda kept, damping: resumed.append((kept, damping)), clock=still)
     reason = None
     for it in range(1, len(scores) + 1):
         now["it"] = it
@@ -729,7 +782,7 @@ def test_validation_stop_lowers_the_rates_at_a_plateau_before_it_stops():
         {"at": first, "back_to": 2}, {"at": second, "back_to": first + 1}]
     assert "back to it with the learning rates x0.3" in lines[0]
     # Without a way back (or without a kept state) it stops at the first plateau.
-    stop = ValidationStop(state, plan, float("inf"), lambda: scores[now["it"] - 1])
+    stop = ValidationStop(state, plan, float("inf"), lambda: scores[now["it"] - 1], clock=still)
     for it in range(1, len(scores) + 1):
         now["it"] = it
         if stop(it):

@@ -38,14 +38,14 @@ from . import outputs
 from ..physics.host_arrays import jit_array
 from .budget import (OUTPUT_RESERVE, SUN_TRIAL_STEPS, TIMED, Budget, EarlyStop, Replan,
                      overrun_report, plan_stage, position_lr_factor, probe_batch_scale,
-                     PLATEAU_LR_FACTOR, PLATEAU_REDUCTIONS, anneal_lr_factor,
+                     PLATEAU_LR_FACTOR, PLATEAU_REDUCTIONS, VALIDATION_SHARE, anneal_lr_factor,
                      small_budget_warning, stage1_seconds, stage_progress, time_iterations,
                      fixed_costs, resumed_plan, resumed_progress)
 from .checkpoint import checkpoint_path, fingerprint, load_checkpoint, save_checkpoint
 from .config import FitConfig  # noqa: F401  (the fit's options, imported from here by callers)
 from .evaluate import score_stage1, score_stage2
 from .init import init_materials, init_sky_from_mask, load_state, sh_mask
-from .loop import LOG_SHARE, Interrupted, StageRun, record_point, train
+from .loop import LOG_SHARE, Interrupted, LogCadence, StageRun, record_point, train
 from .model_selection import (SUN_TRIAL_MARGIN, LightingChoice, LobeChoice, choose_lidar_lobe,
                               choose_lighting, choose_render_samples, choose_sky_start, log_lighting,
                               sun_alternative)
@@ -241,7 +241,7 @@ def stage1_stop(state: FitState, s1, plan, deadline):
         s1.restore(snapshot)
         s1.opt.set_damping(damping)
     return ValidationStop(state, plan, deadline, lambda: score_stage1(state, state.validation_frames),
-                          keep=s1.snapshot, resume_from=resume_from)
+                          keep=s1.snapshot, resume_from=resume_from, share=VALIDATION_SHARE)
 
 
 def stage1_schedule(state: FitState, s1, progress_at):
@@ -332,7 +332,11 @@ def fit_materials(state: FitState, stage2, start, checkpoint, budget=None, fresh
 
 def stage2_stop(state: FitState, stage2, plan, deadline):
     """A budgeted stage 2's :class:`ValidationStop`, scoring the validation
-    frames with the lighting caches following the learned normals."""
+    frames with the lighting caches following the learned normals. Its
+    scores stay on the plan's grid (no share): each one first re-traces the
+    sky visibility of the turned normals in every cache, the training
+    frames' too, so spacing them out would also change what stage 2 learns
+    from."""
     def resume_from(snapshot, damping):
         stage2.restore(snapshot)
         stage2.opt.set_damping(damping)
@@ -381,8 +385,11 @@ def validation_score(psnr, rmse):
 
 class ValidationStop:
     """The stop test of a budgeted stage: its share of time is spent, or its
-    validation ``score()`` (evaluated every ``plan.eval_every`` iterations)
-    has stopped improving.
+    validation ``score()`` has stopped improving. The score is evaluated on
+    multiples of ``plan.eval_every`` iterations; with ``share`` they are
+    spaced out (as the log's points are, :class:`~.loop.LogCadence`) where
+    the scores would take more than that share of the stage's time. Their
+    count and seconds go into the stage's budget record (``validation``).
 
     With ``keep`` (a function returning the stage's state), the state at the
     best validation score so far is kept in ``best_state``: a stage stopped
@@ -398,8 +405,9 @@ class ValidationStop:
     was left of the budget would otherwise go unused.
     """
 
-    def __init__(self, state: FitState, plan, deadline, score, keep=None, resume_from=None):
-        self.state, self.plan, self.deadline = state, plan, deadline
+    def __init__(self, state: FitState, plan, deadline, score, keep=None, resume_from=None,
+                 share=None, clock=time.perf_counter):
+        self.state, self.plan, self.deadline, self.clock = state, plan, deadline, clock
         self.score, self.keep, self.resume_from = score, keep, resume_from
         self.stopper = EarlyStop()
         self.best_score = -np.inf
@@ -408,13 +416,29 @@ class ValidationStop:
         self.last = (None, np.nan)      # (iteration, score) of the last evaluation
         self.damping = 1.0
         self.plateaus = []              # iterations at which the rates were lowered
+        self.cadence = LogCadence(plan.eval_every, share, clock=clock)
+        self.scored = [0, 0.0]          # validation scores so far, their seconds
 
     def __call__(self, it):
-        if time.perf_counter() > self.deadline:
+        if self.clock() > self.deadline:
             return "its share of the budget is spent"
-        if not (self.state.validation_frames and it % self.plan.eval_every == 0):
+        if not self.state.validation_frames:
             return None
+        if self.scored[0] == 0:
+            # The first score on the plan's grid (a resumed stage starts
+            # anywhere), then as the cadence spaces them.
+            if it % self.plan.eval_every:
+                return None
+        elif not self.cadence.due(it):
+            return None
+        t = self.clock()
         score = self.score()
+        seconds = self.clock() - t
+        self.cadence.logged(it, seconds)
+        self.scored = [self.scored[0] + 1, self.scored[1] + seconds]
+        self.state.selection.setdefault("budget", {}).setdefault(self.plan.name, {})[
+            "validation"] = {"scores": self.scored[0], "seconds": round(self.scored[1], 2),
+                             "every": self.cadence.next_at - it}
         self.last = (it, score)
         if self.keep is not None and np.isfinite(score) and score > self.best_score:
             self.best_score, self.best_state, self.best_iteration = score, self.keep(), it
