@@ -625,17 +625,13 @@ def test_validation_stop_returns_to_the_best_state():
     import types
     from mi_invrgbl.fit.budget import PATIENCE
     from mi_invrgbl.fit.runner import ValidationStop
-    # A clock that stands still: these stages' steps cost nothing, so any
-    # score would look expensive next to them and be spaced out.
-    def still():
-        return 0.0
     scores = {1: 20.0, 2: 22.0, 3: 21.0, 4: 20.5, 5: 20.2, 6: 20.0}
     lines = []
     state = types.SimpleNamespace(validation_frames=[object()], selection={}, log=lines.append)
     plan = types.SimpleNamespace(eval_every=1, name="stage 1")
     now = {"it": 0}
     stop = ValidationStop(state, plan, float("inf"), lambda: scores[now["it"]],
-                          keep=lambda: "state@%d" % now["it"], clock=still)
+                          keep=lambda: "state@%d" % now["it"])
     reasons = []
     for it in range(1, 7):
         now["it"] = it
@@ -649,8 +645,7 @@ def test_validation_stop_returns_to_the_best_state():
     record = state.selection["budget"]["stage 1"]["best_validation"]
     assert record["iteration"] == 2 and record["kept"] == "best" and record["last_score"] < 22.0
     # Rising to the end: nothing to go back to.
-    stop = ValidationStop(state, plan, float("inf"), lambda: float(now["it"]), keep=lambda: now["it"],
-                          clock=still)
+    stop = ValidationStop(state, plan, float("inf"), lambda: float(now["it"]), keep=lambda: now["it"])
     for it in range(1, 4):
         now["it"] = it
         assert stop(it) is None
@@ -663,7 +658,7 @@ def test_validation_stop_returns_to_the_best_state():
     def counted():
         calls.append(now["it"])
         return seq[now["it"]]
-    stop = ValidationStop(state, plan, float("inf"), counted, keep=lambda: now["it"], clock=still)
+    stop = ValidationStop(state, plan, float("inf"), counted, keep=lambda: now["it"])
     for it in range(1, 4):
         now["it"] = it
         stop(it)
@@ -753,9 +748,6 @@ def test_validation_stop_lowers_the_rates_at_a_plateau_before_it_stops():
     import types
     from mi_invrgbl.fit.budget import PATIENCE, PLATEAU_LR_FACTOR, PLATEAU_REDUCTIONS
     from mi_invrgbl.fit.runner import ValidationStop
-
-    def still():    # steps that cost nothing: keep the plan's grid
-        return 0.0
     assert PLATEAU_REDUCTIONS == 2
     lines = []
     state = types.SimpleNamespace(validation_frames=[object()], selection={}, log=lines.append)
@@ -767,7 +759,7 @@ def test_validation_stop_lowers_the_rates_at_a_plateau_before_it_stops():
     now = {"it": 0}
     stop = ValidationStop(state, plan, float("inf"), lambda: scores[now["it"] - 1],
                           keep=lambda: "state@%d" % now["it"],
-                          resume_from=lambda kept, damping: resumed.append((kept, damping)), clock=still)
+                          resume_from=lambda kept, damping: resumed.append((kept, damping)))
     reason = None
     for it in range(1, len(scores) + 1):
         now["it"] = it
@@ -782,7 +774,7 @@ def test_validation_stop_lowers_the_rates_at_a_plateau_before_it_stops():
         {"at": first, "back_to": 2}, {"at": second, "back_to": first + 1}]
     assert "back to it with the learning rates x0.3" in lines[0]
     # Without a way back (or without a kept state) it stops at the first plateau.
-    stop = ValidationStop(state, plan, float("inf"), lambda: scores[now["it"] - 1], clock=still)
+    stop = ValidationStop(state, plan, float("inf"), lambda: scores[now["it"] - 1])
     for it in range(1, len(scores) + 1):
         now["it"] = it
         if stop(it):
