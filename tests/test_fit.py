@@ -718,11 +718,11 @@ def test_validation_scores_keep_to_their_share_of_a_budgeted_stage_1():
         scored = []
         for it in range(start + 1, start + steps + 1):
             now[0] += step_s
-            before = stop.scored[0]
+            before = stop.scores
             assert stop(it) is None
-            if stop.scored[0] > before:
+            if stop.scores > before:
                 scored.append(it)
-        return scored, stop.scored[1] / now[0], state.selection["budget"]["stage 1"]["validation"]
+        return scored, stop.score_seconds / now[0], state.selection["budget"]["stage 1"]["validation"]
 
     scored, share, record = run(2.0)
     assert all(it % 18 == 0 for it in scored) and scored[0] == 18

@@ -57,15 +57,16 @@ class LogCadence:
     until the points cost at most ``share`` of the stage's time: the
     point's own seconds against the seconds per iteration measured between
     the last two points (points included, so it errs towards more of
-    them)."""
+    them). The first point is on a multiple of ``every`` (``next_at``
+    None; a resumed stage starts anywhere)."""
     every: int
     share: float | None = None
     clock: Callable = time.perf_counter
-    next_at: int = 0
+    next_at: int | None = None
     _last: tuple = field(default=None, repr=False)
 
     def due(self, it) -> bool:
-        if self.share is None:
+        if self.share is None or self.next_at is None:
             return it % self.every == 0
         return it >= self.next_at
 
@@ -107,8 +108,7 @@ def train(state: FitState, run: StageRun, start, total):
     t_stage = time.perf_counter()
     it = start
 
-    cadence = LogCadence(cfg.eval_every, run.log_share,
-                         next_at=(start // cfg.eval_every + 1) * cfg.eval_every)
+    cadence = LogCadence(cfg.eval_every, run.log_share)
 
     def record(it, loss=float("nan"), terms=None):
         t = time.perf_counter()

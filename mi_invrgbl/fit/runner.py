@@ -98,12 +98,12 @@ def run_fit(scene_path, config: FitConfig, log=print):
             # (A fit resumed from stage 2's first checkpoint keeps the test's
             # decision: the trial needs the lighting choice of this run.)
             alternative = sun_alternative(state, lighting)
-        if alternative is not None and budget is not None \
-                and not budget.sun_trial_fits(state.times.get("freeze", 0.0)):
+        froze = state.times.get("freeze", 0.0)
+        if alternative is not None and budget is not None and not budget.sun_trial_fits(froze):
             state.log("[fit] sun trial skipped: stage 2 has %.0f s of its %.0f s share left, too "
                       "little for the trial's steps and its start (about what freezing took, "
                       "%.0f s); the sun test's decision stands"
-                      % (budget.stage2_left(), budget.share("stage 2"), state.times.get("freeze", 0.0)))
+                      % (budget.stage2_left(), budget.share("stage 2"), froze))
             state.selection["sun"]["trial"] = {"skipped": True,
                                                "stage2_seconds_left": round(budget.stage2_left(), 1)}
             alternative = None
@@ -417,27 +417,20 @@ class ValidationStop:
         self.damping = 1.0
         self.plateaus = []              # iterations at which the rates were lowered
         self.cadence = LogCadence(plan.eval_every, share, clock=clock)
-        self.scored = [0, 0.0]          # validation scores so far, their seconds
+        self.scores, self.score_seconds = 0, 0.0    # validation scores so far, their time
 
     def __call__(self, it):
         if self.clock() > self.deadline:
             return "its share of the budget is spent"
-        if not self.state.validation_frames:
-            return None
-        if self.scored[0] == 0:
-            # The first score on the plan's grid (a resumed stage starts
-            # anywhere), then as the cadence spaces them.
-            if it % self.plan.eval_every:
-                return None
-        elif not self.cadence.due(it):
+        if not (self.state.validation_frames and self.cadence.due(it)):
             return None
         t = self.clock()
         score = self.score()
         seconds = self.clock() - t
         self.cadence.logged(it, seconds)
-        self.scored = [self.scored[0] + 1, self.scored[1] + seconds]
+        self.scores, self.score_seconds = self.scores + 1, self.score_seconds + seconds
         self.state.selection.setdefault("budget", {}).setdefault(self.plan.name, {})[
-            "validation"] = {"scores": self.scored[0], "seconds": round(self.scored[1], 2),
+            "validation"] = {"scores": self.scores, "seconds": round(self.score_seconds, 2),
                              "every": self.cadence.next_at - it}
         self.last = (it, score)
         if self.keep is not None and np.isfinite(score) and score > self.best_score:
