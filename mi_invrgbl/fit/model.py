@@ -89,6 +89,9 @@ class GaussianModel:
         self.params = mi.traverse(scene)
         self.nodes: dict[str, Node] = {}
         self.object_names = set(object_names)
+        #: The poses (the mapping itself) the scene's objects were last
+        #: pushed at (:meth:`push`); a trace through the scene sees them there.
+        self.placed = None
         #: Node name -> the Dr.Jit registry id its hits carry in hit lists.
         self.shape_ids: dict[str, int] = {}
         for shape in scene.shapes():
@@ -154,6 +157,7 @@ class GaussianModel:
         (4x4, or a :class:`RigidPose`).
         Stage 1 shows the view-independent colour as albedo.
         """
+        self.placed = poses
         poses = poses or {}
         for name, node in self.nodes.items():
             data, opac = self.world_geometry(node, poses.get(name))

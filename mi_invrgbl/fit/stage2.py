@@ -86,10 +86,14 @@ class FrozenScene:
         self.pattern_caches = {}
         # Per-frame visibility (objects' shadows move with them) costs G x M
         # shadow rays per frame; by default one cache is shared and lighting is
-        # evaluated with the objects at their first-frame placement.
+        # evaluated with the objects placed as in one frame, :attr:`first`.
         dynamic = any(n.dynamic for n in model.nodes.values()) and cfg.per_frame_visibility
         self.per_frame = dynamic
-        self.first = frames[0] if frames else None
+        #: The frame whose object placement the shared lighting is traced at:
+        #: the first training frame (the one stage 2's start is set up in),
+        #: else the first frame.
+        train = [t for t in ctx.train_frames if any(t is f for f in frames)]
+        self.first = train[0] if train else (frames[0] if frames else None)
         shared = LightingCache()
         with dr.suspend_grad():
             for frame in frames:
@@ -125,6 +129,19 @@ class FrozenScene:
         if pattern == 0:
             return first
         return self.pattern_caches.setdefault((id(first), pattern), LightingCache())
+
+    def place(self, frame):
+        """Put the scene's objects where ``frame``'s lighting is traced: at
+        ``frame``'s poses with per-frame visibility, else at :attr:`first`'s.
+
+        A trace of sky or sun visibility goes through the scene as it was
+        last pushed, while the Gaussians it starts from come from the
+        frozen geometry of that placement; the two must agree. Pushed only
+        when they do not (a push rebuilds the scene's acceleration
+        structure)."""
+        target = frame if self.per_frame else self.first
+        if target is not None and self.ctx.model.placed is not target.poses:
+            self.ctx.model.push(target.poses, stage=2)
 
     def nodes(self, frame, values):
         """Virtual nodes of ``frame``: frozen geometry + the material variables."""
@@ -302,7 +319,7 @@ class Stage2:
         :meth:`init_shading`); ``trust_facings``: keep the facings' sun
         irradiance where it disagrees with the lighting selection's level."""
         ctx, model = self.ctx, self.ctx.model
-        frame = ctx.train_frames[0] if ctx.train_frames else self.frozen.first
+        frame = self.frozen.first
         names = list(model.nodes)
         counts = [model.nodes[n].count for n in names]
         report = {}
@@ -327,7 +344,7 @@ class Stage2:
                 sun_dir = np.array(d, np.float64).T
             vals = self.values()
             nodes = self.frozen.nodes(frame, vals)
-            lighting = self.lighting(nodes, self.frozen.caches[frame.index])
+            lighting = self.lighting(nodes, self.frozen.caches[frame.index], frame=frame)
             table = lighting.table
             D = shading_init.as_rows(lighting.diffuse_sky)
             colour = np.concatenate([model.nodes[n].numpy("colour") for n in names])
@@ -479,7 +496,7 @@ class Stage2:
                 f = train[i]
                 fh = self.frozen.camera[f.index]
                 nodes = self.frozen.nodes(f, vals)
-                lighting = self.lighting(nodes, self.frozen.cache(f))
+                lighting = self.lighting(nodes, self.frozen.cache(f), frame=f)
                 g = frozen_gaussian_hits(nodes, f.camera.rays, fh)
                 colour, *_ = self.ctx.camera_integrator.shade_gaussian_hits(
                     lighting, nodes, f.camera.rays, fh, g)
@@ -503,10 +520,13 @@ class Stage2:
         psnr, _ = score_stage2(self, frames)
         return psnr
 
-    def lighting(self, nodes, cache, samples=None, pattern=0):
+    def lighting(self, nodes, cache, samples=None, pattern=0, frame=None):
         """The Gaussians' incident light as the fit shades them (its M,
-        bounces and sun visibility), from ``cache``."""
+        bounces and sun visibility), from ``cache``. An empty cache is traced
+        now, with the objects placed for ``frame`` (:meth:`FrozenScene.place`)."""
         cfg = self.ctx.config
+        if frame is not None and not cache.key:
+            self.frozen.place(frame)
         return GaussianLighting(self.ctx.scene, nodes, samples or cfg.samples, cache,
                                 trace_sun=not self.learn_sun_visibility, bounces=cfg.bounces,
                                 pattern=pattern)
@@ -543,6 +563,7 @@ class Stage2:
                         continue
                     seen.add(id(cache))
                     nodes = nodes or frozen.nodes(frame, vals)
+                    frozen.place(frame)
                     count += retrace_turned(ctx.scene, nodes, cache, ctx.config.samples, p,
                                             ctx.config.bounces, RETRACE_TURN_DEG)
         self.lighting_stale = False
@@ -566,7 +587,8 @@ class Stage2:
                 seen.add(id(self.frozen.caches[frame.index]))
                 nodes = self.frozen.nodes(frame, vals)
                 for p in range(max(1, ctx.config.sky_patterns)):
-                    dr.eval(self.lighting(nodes, self.frozen.cache(frame, p), pattern=p).diffuse)
+                    dr.eval(self.lighting(nodes, self.frozen.cache(frame, p), pattern=p,
+                                          frame=frame).diffuse)
 
     # ---------------------------------------------------------- render
     def render_frame(self, frame, vals, camera=True, lidar=True, samples=None, caches=None,
@@ -584,7 +606,7 @@ class Stage2:
         out = {}
         if camera and frame.index in self.frozen.camera and ctx.config.weights.rgb > 0:
             cache = caches[frame.index] if caches else self.frozen.cache(frame, pattern)
-            lighting = self.lighting(nodes, cache, samples, pattern)
+            lighting = self.lighting(nodes, cache, samples, pattern, frame=frame)
             out["camera"] = camera_shaded(ctx.camera_integrator, ctx.scene, lighting, nodes,
                                           frame.camera.rays, self.frozen.camera[frame.index])
         if lidar and frame.index in self.frozen.lidar:

@@ -1,0 +1,107 @@
+"""Stage 2 traces the Gaussians' sky visibility through the scene with the
+moving objects where the traced geometry has them.
+
+A trace starts from the frozen geometry of one frame (the shared cache's
+reference frame, or each frame with ``per_frame_visibility``) and goes through
+the scene as it was last pushed. Here the fit scene of tests/fit_scene.py gets
+a block of Gaussians that drives along the street between the frames, and
+every cache stage 2 fills is compared with a trace made from scratch with the
+scene placed for that cache's frame.
+"""
+
+import json
+import os
+
+import numpy as np
+import pytest
+import drjit as dr
+import mitsuba as mi
+
+from fit_scene import build
+from mi_invrgbl.fit.config import FitConfig
+from mi_invrgbl.fit.init import load_state
+from mi_invrgbl.fit.stage2 import FrozenScene, Stage2
+from mi_invrgbl.physics.gaussian_ply import GaussianCloud, write_ply
+from mi_invrgbl.physics.lighting import GaussianLighting, LightingCache
+
+W, H, COLUMNS, FRAMES = 32, 12, 64, 4
+
+
+def _pose(x):
+    T = np.eye(4)
+    T[:3, 3] = (x, 0.8, 0.6)
+    return T
+
+
+@pytest.fixture(scope="module")
+def moving_scene(tmp_path_factory):
+    """The fit scene with ``object_1``, a 1 m block of 125 Gaussians 0.6 m
+    above the road, 2.5 m further down the street at every frame."""
+    root = str(tmp_path_factory.mktemp("placement"))
+    path = build(root, n_frames=FRAMES, width=W, height=H, columns=COLUMNS)
+    g = (np.stack(np.meshgrid(*[np.linspace(-0.5, 0.5, 5)] * 3, indexing="ij"), -1)
+         .reshape(-1, 3).astype(np.float32))
+    n = len(g)
+    write_ply(os.path.join(root, "object_1.ply"), GaussianCloud(
+        centers=g, scales=np.full((n, 3), 0.15, np.float32),
+        quaternions=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+        opacities=np.full(n, 0.9, np.float32), normals=np.tile(np.float32([0, 0, 1]), (n, 1))))
+    poses = [_pose(3.0 + 2.5 * i) for i in range(FRAMES)]
+    matrix = " ".join("%.9g" % v for v in poses[0].ravel())
+    xml = open(path).read().replace(
+        "</scene>", '<shape type="gaussians" id="object_1"><string name="filename" '
+        'value="object_1.ply"/><transform name="to_world"><matrix value="%s"/></transform>'
+        "</shape></scene>" % matrix)
+    open(path, "w").write(xml)
+    meta = json.load(open(os.path.join(root, "frames.json")))
+    meta["objects"] = {"object_1": {"track_id": 1, "kind": "Car", "size_hwl": [1, 1, 1],
+                                    "moving": True, "ply": "object_1.ply"}}
+    for i, f in enumerate(meta["frames"]):
+        f["objects"] = {"object_1": poses[i].tolist()}
+    json.dump(meta, open(os.path.join(root, "frames.json"), "w"))
+    return path
+
+
+def _state(path, tmp_path, per_frame):
+    cfg = FitConfig(output=str(tmp_path), fit_width=W, lidar_columns=COLUMNS, samples=8,
+                    sun="on", validation_every=0, object_poses=False,
+                    per_frame_visibility=per_frame)
+    return load_state(path, cfg, log=lambda *a: None)
+
+
+def _fresh_visibility(state, stage2, frame):
+    """Sky visibility traced now, with the scene pushed at ``frame``'s poses."""
+    state.model.push(frame.poses, stage=2)
+    cache = LightingCache()
+    with dr.suspend_grad():
+        GaussianLighting(state.scene, stage2.frozen.nodes(frame, stage2.values()),
+                         state.config.samples, cache, trace_sun=not stage2.learn_sun_visibility,
+                         bounces=state.config.bounces)
+    return np.array(cache.sky_visibility)
+
+
+def test_per_frame_caches_are_traced_with_the_objects_at_their_frame(moving_scene, tmp_path):
+    state = _state(moving_scene, tmp_path, per_frame=True)
+    frames = state.train_frames
+    assert len(frames) == FRAMES
+    stage2 = Stage2(state, FrozenScene(state, frames))
+    state.model.push(frames[0].poses, stage=2)   # where stage 2's start leaves the scene
+    stage2.trace_patterns()
+    cached = {f.index: np.array(stage2.frozen.caches[f.index].sky_visibility) for f in frames}
+    for f in frames:
+        np.testing.assert_allclose(cached[f.index], _fresh_visibility(state, stage2, f), atol=1e-6)
+    # The block's move changes what the Gaussians see of the sky (else this test could not fail).
+    assert np.mean(np.abs(cached[frames[0].index] - cached[frames[-1].index]) > 0.1) > 1e-3
+
+
+def test_the_shared_cache_is_traced_at_its_reference_frame(moving_scene, tmp_path):
+    state = _state(moving_scene, tmp_path, per_frame=False)
+    frames = state.train_frames
+    frozen = FrozenScene(state, frames[::-1])     # the reference is the first *training* frame
+    assert frozen.first is frames[0]
+    stage2 = Stage2(state, frozen)
+    state.model.push(frames[-1].poses, stage=2)   # something else moved the objects last
+    stage2.trace_patterns()
+    cached = np.array(frozen.caches[frames[0].index].sky_visibility)
+    np.testing.assert_allclose(cached, _fresh_visibility(state, stage2, frames[0]), atol=1e-6)
+    assert not np.allclose(cached, _fresh_visibility(state, stage2, frames[-1]), atol=1e-3)
