@@ -70,7 +70,7 @@ FLAGS = (
      "keep the paper's cos/d^2 LiDAR response instead of estimating it", {"invert": True}),
     ("--per-frame-visibility", "per_frame_visibility",
      "trace sky/sun visibility per frame so moving objects' shadows move (G x M shadow rays "
-     "per frame; default: once, objects at their first pose)", {}),
+     "per frame; default: once, objects placed as in the first training frame)", {}),
     ("--sun-visibility", "sun_visibility",
      "per-Gaussian sun visibility: traced at stage 2's start and then learned (the paper's "
      "v_sun; shadows of occluders the fit lacks), or traced only",
