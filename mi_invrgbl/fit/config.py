@@ -74,10 +74,11 @@ class FitConfig:
     #: Stage 2 integrates each camera pixel over a ``pixel_grid`` x
     #: ``pixel_grid`` set of rays (:func:`.render.freeze_pixels`), as the
     #: camera and ``eval``'s box filter do; 1: one ray through the centre.
-    #: Off by default: at 2 x 2, KITTI at 30 minutes scored 21.99 dB (one
-    #: run; 21.81-21.90 at 1 x 1), but its stage 1 had ended 0.1-0.2 dB
-    #: higher on the validation frames than in those runs, and eval less
-    #: stage 1's validation score was -0.23 dB (-0.17 to -0.28 at 1 x 1);
+    #: Off by default: at 2 x 2, KITTI at 30 minutes scored 21.99 and
+    #: 21.75 dB in two runs (21.76-21.90 in four at 1 x 1); the first run's
+    #: stage 1 had ended 0.1-0.2 dB higher on the validation frames than
+    #: the others, the second's 0.2 dB lower (21.83), and eval less
+    #: stage 1's validation score was -0.23 and -0.08 dB (-0.17 to -0.28 at 1 x 1);
     #: the street at 8 minutes kept its PSNR (28.54 against 28.53) while
     #: freezing took 65 s instead of 41, stage 2 ran 92 steps instead of
     #: 248 and the albedo RMSE rose from 0.173 to 0.207.
