@@ -121,6 +121,14 @@ def test_sh_order_ignores_pixels_that_are_not_sky():
     assert np.abs((B[:1] @ plain).ravel() - sky).max() > 0.04
 
 
+def _ground(rng, n, size):
+    """``n`` Gaussians on flat ground ``size`` metres across: their 2 m
+    patches and one albedo per patch."""
+    centers = rng.uniform(0, size, (n, 3)); centers[:, 2] = 0
+    patches = surface_patches(centers, np.tile([0.0, 0, 1], (n, 1)))
+    return patches, rng.uniform(0.1, 0.8, patches.max() + 1)[patches]
+
+
 def test_cross_validated_gain_separates_shadows_from_picked_noise():
     # 300 candidate "directions" of random lit/shadowed patterns: the best of
     # them explains some noise where it was picked, but not on other patches;
@@ -128,9 +136,7 @@ def test_cross_validated_gain_separates_shadows_from_picked_noise():
     from mi_invrgbl.fit.selection import cross_validated_gain, score_candidates
     rng = np.random.default_rng(1)
     n = 400
-    centers = rng.uniform(0, 40, (n, 3)); centers[:, 2] = 0
-    patches = surface_patches(centers, np.tile([0.0, 0, 1], (n, 1)))
-    albedo = rng.uniform(0.1, 0.8, patches.max() + 1)[patches]
+    patches, albedo = _ground(rng, n, 40)
     noise_feats = (rng.random((n, 300)) > 0.5).astype(float)
     w = np.ones(n)
     overcast = albedo * np.exp(rng.normal(0, 0.3, n))
@@ -140,6 +146,55 @@ def test_cross_validated_gain_separates_shadows_from_picked_noise():
     s = noise_feats[:, 7]
     sunny = albedo * (1 + 2.0 * s) * np.exp(rng.normal(0, 0.3, n))
     assert cross_validated_gain(sunny, patches, w, noise_feats) > 0.5
+
+
+def test_sky_occlusion_model_is_fitted_not_taken_as_traced():
+    # Shading that is all sun, with a traced sky visibility that is noise:
+    # the sky-occlusion model must fall back to none (b = 0) and leave the
+    # sun its gain; taken as traced (b = 1) it would add its noise to every
+    # Gaussian, and the sun would explain little "beyond" it.
+    from mi_invrgbl.fit.selection import SUN_RATIOS, sky_occlusion_gains
+    rng = np.random.default_rng(2)
+    n = 3000
+    patches, albedo = _ground(rng, n, 30)
+    s = (rng.random(n) > 0.4).astype(float)
+    lum = albedo * (1 + 2.0 * s) * np.exp(rng.normal(0, 0.1, n))
+    noise_sky = rng.uniform(0.02, 1.0, n)
+    reg = PatchRegression(lum, patches)
+    gain_sky, over, b = sky_occlusion_gains(reg, s, noise_sky)
+    print(gain_sky, over, b)
+    assert b == 0.0 and gain_sky == pytest.approx(0.0, abs=1e-12)
+    assert over > 0.8
+    as_traced, _ = reg.fit(s, noise_sky)            # the old, b = 1 reference
+    assert as_traced < over - 0.2
+    # Darkening that sky occlusion explains: the sky model takes it, and a
+    # "sun" whose pattern is unrelated adds nothing beyond it.
+    sky = rng.uniform(0.1, 1.0, n)
+    lum = albedo * sky * np.exp(rng.normal(0, 0.05, n))
+    gain_sky, over, b = sky_occlusion_gains(PatchRegression(lum, patches), s, sky)
+    print(gain_sky, over, b)
+    assert b == 1.0 and gain_sky > 0.9 and over < 0.01
+    assert 0.0 in SUN_RATIOS
+
+
+def test_cross_validated_gain_averages_splits():
+    # A weak real sun: one random split's gain scatters, the mean of eight
+    # scatters less (the gains are those of the eight splits' halves).
+    from mi_invrgbl.fit.selection import cross_validated_gain, cross_validated_gains
+    rng = np.random.default_rng(3)
+    n = 600
+    patches, albedo = _ground(rng, n, 40)
+    feats = (rng.random((n, 40)) > 0.5).astype(float)
+    lum = albedo * (1 + 0.3 * feats[:, 5]) * np.exp(rng.normal(0, 0.3, n))
+    w = np.ones(n)
+    g = cross_validated_gains(lum, patches, w, feats, seed=0, splits=8)
+    assert g.shape == (16,)
+    assert cross_validated_gain(lum, patches, w, feats, seed=0, splits=8) == pytest.approx(g.mean())
+    one = [cross_validated_gain(lum, patches, w, feats, seed=k, splits=1) for k in range(12)]
+    eight = [cross_validated_gain(lum, patches, w, feats, seed=k, splits=8) for k in range(12)]
+    print(np.std(one), np.std(eight), np.mean(eight))
+    assert np.std(eight) < 0.6 * np.std(one)
+    assert np.mean(eight) > 0.0
 
 
 def test_render_samples_choice_keeps_to_a_budget(monkeypatch):

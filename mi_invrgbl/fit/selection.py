@@ -11,9 +11,11 @@
   that within-patch variance ``log(1 + rho s)`` explains at its best ``rho``.
   Candidates cover the upper hemisphere; the best is refined on two finer
   cones. Sky occlusion also darkens Gaussians under things, so a sun is used
-  only if it still explains variance once the sky visibility (from the same
-  traced candidates) is in the model, and clearly more than a typical
-  candidate does.
+  only if it still explains variance once the best sky-occlusion model (the
+  sky visibility from the same traced candidates, raised to a fitted power,
+  or none) is in the model, if it explains variance on patches it was not
+  chosen on (averaged over several random splits), and clearly more than a
+  typical candidate does.
 * **SH order.** The sky seen directly (pixels with no Gaussian in front) is
   fitted at orders 0..3 on 80 % of those pixels by trimmed least squares
   (the 20 % worst-explained pixels, which show roofs or crowns the fit has no
@@ -169,11 +171,21 @@ def refine_candidates(direction, spread_deg=10.0, count=12):
     return np.array(out)
 
 
-def cross_validated_gain(luminance, patches, weights, features, seed=0):
-    """The sun's gain where it was not chosen: the patches are split in two
-    halves; on each, the best of ``features``' candidate directions (and its
+#: Random two-way splits of the patches :func:`cross_validated_gain`
+#: averages over. One split's gain is noisy: on the Gaussians of one
+#: 8-minute street fit (seven random 80 % subsets, normals as stage 2 left
+#: them) one split's gain ranged over 0.008-0.080 and the standard deviation
+#: between eight splits was 0.015-0.045; an 8-minute KITTI fit's one split
+#: scored -0.002 and rejected the sun its 30-minute fits kept (0.065-0.108).
+CV_SPLITS = 8
+
+
+def cross_validated_gains(luminance, patches, weights, features, seed=0, splits=CV_SPLITS):
+    """The sun's gain where it was not chosen, once per split (an array of
+    ``2 * splits`` gains): the patches are split in two random halves; on
+    each half the best of ``features``' candidate directions (and its
     ``rho``) is picked, and the share of the other half's within-patch
-    residual it removes is measured. Returns the mean over both halves.
+    residual it removes is measured.
 
     The best of many candidate directions always explains some of the noise
     of the patches it was picked on (in an overcast test street the refined
@@ -181,20 +193,51 @@ def cross_validated_gain(luminance, patches, weights, features, seed=0):
     rounding); shadows of a real sun also darken the other half's patches.
     """
     n_patches = int(patches.max()) + 1 if len(patches) else 0
-    half = np.random.default_rng(seed).permutation(n_patches)[patches] % 2
+    rng = np.random.default_rng(seed)
     gains = []
-    for pick in (0, 1):
-        a, b = half == pick, half != pick
-        if not a.any() or not b.any():
-            return 0.0
-        reg_a = PatchRegression(luminance[a], patches[a], weights[a])
-        scores = score_candidates(reg_a, features[a])
-        k = int(np.argmax(scores[:, 0]))
-        reg_b = PatchRegression(luminance[b], patches[b], weights[b])
-        res0 = reg_b.residual(reg_b.y)
-        res = reg_b.residual(reg_b.y - np.log(1.0 + scores[k, 1] * features[b, k]))
-        gains.append(1.0 - res / res0 if res0 > 0 else 0.0)
-    return float(np.mean(gains))
+    for _ in range(max(1, int(splits))):
+        half = rng.permutation(n_patches)[patches] % 2
+        for pick in (0, 1):
+            a, b = half == pick, half != pick
+            if not a.any() or not b.any():
+                return np.zeros(1)
+            reg_a = PatchRegression(luminance[a], patches[a], weights[a])
+            scores = score_candidates(reg_a, features[a])
+            k = int(np.argmax(scores[:, 0]))
+            reg_b = PatchRegression(luminance[b], patches[b], weights[b])
+            res0 = reg_b.residual(reg_b.y)
+            res = reg_b.residual(reg_b.y - np.log(1.0 + scores[k, 1] * features[b, k]))
+            gains.append(1.0 - res / res0 if res0 > 0 else 0.0)
+    return np.array(gains)
+
+
+def cross_validated_gain(luminance, patches, weights, features, seed=0, splits=CV_SPLITS):
+    """Mean of :func:`cross_validated_gains`."""
+    return float(np.mean(cross_validated_gains(luminance, patches, weights, features, seed, splits)))
+
+
+#: Exponents ``b`` of the sky-occlusion model ``ambient ** b`` (0: none).
+#: The traced sky visibility of stage-1 Gaussians is noisy: used as it is
+#: (``b = 1``) it made the within-patch residual worse than no model at all
+#: in every fit recorded (street: by 29-35 %, KITTI: 3-8 %), and a sun then
+#: explained nothing "beyond" it (street, one 8-minute fit: 0.0, sun rejected).
+SKY_EXPONENTS = (0.0, 0.25, 0.5, 0.75, 1.0)
+
+
+def sky_occlusion_gains(regression, s, ambient):
+    """``(gain_sky_only, gain_over_sky, exponent)``: the share of the
+    within-patch residual the best sky-occlusion model ``ambient ** b``
+    explains (over :data:`SKY_EXPONENTS`, so never below 0), and the share
+    of what it leaves that the sun ``s`` removes on top (best ``b`` and
+    ``rho`` together)."""
+    res0 = regression.residual(regression.y)
+    sky = [regression.residual(regression.y - b * np.log(ambient)) for b in SKY_EXPONENTS]
+    j = int(np.argmin(sky))
+    both = min(regression.residual(regression.y - np.log(ambient ** b + rho * s))
+               for b in SKY_EXPONENTS for rho in SUN_RATIOS)
+    gain_sky = 1.0 - sky[j] / res0 if res0 > 0 else 0.0
+    over = 1.0 - both / sky[j] if sky[j] > 0 else 0.0
+    return float(gain_sky), float(over), float(SKY_EXPONENTS[j])
 
 
 def select_sun(scene, centers, normals, luminance, weights=None, candidates=48,
@@ -203,11 +246,15 @@ def select_sun(scene, centers, normals, luminance, weights=None, candidates=48,
     """Search the upper hemisphere for the sun that best explains the shading.
 
     Returns a dict: ``direction``, ``gain`` (within-patch variance explained),
-    ``gain_over_sky`` (the same with sky visibility in the model),
+    ``gain_over_sky`` (the share of what the best sky-occlusion model
+    leaves that the sun removes, :func:`sky_occlusion_gains`), ``cv_gain``
+    (:func:`cross_validated_gain`, with the lowest and highest split),
     ``median_gain`` (typical candidate), ``sun_to_sky`` (``rho``), the
     ``sky_level``/``sun_level`` of ``Y = b0 + b1 s`` and ``use_sun``.
 
-    The thresholds are set from four scenes: the bundled street at time A
+    The thresholds are set from four scenes (the gains beyond sky occlusion
+    quoted here were measured against the sky visibility taken as it is,
+    ``b = 1`` of :data:`SKY_EXPONENTS`): the bundled street at time A
     (gain 0.09-0.15, 0.009-0.06 beyond sky occlusion, depending on how much
     of the facades the import extended and on stage 1's run-to-run noise),
     the same street rendered with the paper's BRDF (0.050-0.064, 0.012-0.014
@@ -215,8 +262,8 @@ def select_sun(scene, centers, normals, luminance, weights=None, candidates=48,
     overcast (0.036, rejected by ``min_gain``), whose sky gradient and tall
     facade darken the ground near the wall. ``--sun on|off`` overrides them.
     The gain on patches the direction was not chosen on
-    (:func:`cross_validated_gain`) must reach ``min_cv_gain``: measured 0.07-0.08
-    on the street at time A and 0.018-0.020 on the sunny test street. On the
+    (:func:`cross_validated_gain`) must reach ``min_cv_gain``: measured with
+    one split at 0.07-0.08 on the street at time A and 0.018-0.020 on the sunny test street. On the
     overcast test street it is -0.0003 with LLVM, where the best refined
     direction explains 0.014 of the patches it was picked on, but 0.05 with
     CUDA: there the facade's darkening of the ground is consistent across
@@ -241,11 +288,11 @@ def select_sun(scene, centers, normals, luminance, weights=None, candidates=48,
         if fine_scores[j, 0] > best[0]:
             best_dir, best, best_s = fine[j], fine_scores[j], fine_feats[:, j]
     gain, rho = float(best[0]), float(best[1])
-    cv_gain = cross_validated_gain(luminance, patches, reg.w, np.concatenate(tried, axis=1))
-    gain_over_sky, _ = reg.fit(best_s, ambient)
-    # Sky occlusion alone (shading ~ ambient): how much a sunless model explains.
-    res0 = reg.residual(reg.y)
-    gain_sky = 1.0 - reg.residual(reg.y - np.log(ambient)) / res0 if res0 > 0 else 0.0
+    cv = cross_validated_gains(luminance, patches, reg.w, np.concatenate(tried, axis=1))
+    cv_gain = float(np.mean(cv))
+    # Sky occlusion alone (shading ~ ambient ** b): how much a sunless model
+    # explains, and what the sun adds to it.
+    gain_sky, gain_over_sky, sky_exponent = sky_occlusion_gains(reg, best_s, ambient)
     # Levels for initialisation: luminance ~ b0 (1 + rho s).
     shading = 1.0 + rho * best_s
     b0 = float(np.median(luminance / shading))
@@ -254,8 +301,10 @@ def select_sun(scene, centers, normals, luminance, weights=None, candidates=48,
                and cv_gain >= min_cv_gain)
     return {"direction": np.asarray(best_dir, float).tolist(), "gain": gain,
             "alternatives": alternative_directions(best_dir, gain, dirs, scores[:, 0]),
-            "cv_gain": cv_gain,
-            "gain_over_sky": float(gain_over_sky), "gain_sky_only": float(gain_sky),
+            "cv_gain": cv_gain, "cv_gain_spread": [float(cv.min()), float(cv.max())],
+            "cv_splits": int(cv.size // 2),
+            "gain_over_sky": gain_over_sky, "gain_sky_only": gain_sky,
+            "sky_exponent": sky_exponent,
             "median_gain": median_gain,
             "sun_to_sky": rho, "sky_level": max(b0, 1e-3), "sun_level": rho * max(b0, 1e-3),
             "use_sun": use, "patches": int(patches.max() + 1) if len(patches) else 0,
