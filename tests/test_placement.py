@@ -105,3 +105,22 @@ def test_the_shared_cache_is_traced_at_its_reference_frame(moving_scene, tmp_pat
     cached = np.array(frozen.caches[frames[0].index].sky_visibility)
     np.testing.assert_allclose(cached, _fresh_visibility(state, stage2, frames[0]), atol=1e-6)
     assert not np.allclose(cached, _fresh_visibility(state, stage2, frames[-1]), atol=1e-3)
+
+
+def test_an_out_of_date_cache_is_traced_again_at_its_reference_frame(moving_scene, tmp_path):
+    # A filled cache whose key no longer matches (a traced sun that moved, a
+    # new geometry) is traced again inside the lighting; the objects must be
+    # placed for it then too, not only for an empty cache.
+    state = _state(moving_scene, tmp_path, per_frame=False)
+    frames = state.train_frames
+    frozen = FrozenScene(state, frames)
+    stage2 = Stage2(state, frozen)
+    stage2.trace_patterns()
+    cache = frozen.caches[frames[0].index]
+    reference = np.array(cache.sky_visibility)
+    state.model.push(frames[-1].poses, stage=2)   # the objects elsewhere...
+    cache.key = ("out of date",)                  # ...when the cache must be traced again
+    with dr.suspend_grad():
+        stage2.lighting(frozen.nodes(frames[1], stage2.values()), cache, frame=frames[1])
+    assert cache.key != ("out of date",)
+    np.testing.assert_allclose(np.array(cache.sky_visibility), reference, atol=1e-6)

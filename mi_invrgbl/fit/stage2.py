@@ -522,14 +522,14 @@ class Stage2:
 
     def lighting(self, nodes, cache, samples=None, pattern=0, frame=None):
         """The Gaussians' incident light as the fit shades them (its M,
-        bounces and sun visibility), from ``cache``. An empty cache is traced
-        now, with the objects placed for ``frame`` (:meth:`FrozenScene.place`)."""
+        bounces and sun visibility), from ``cache``. A cache that is empty or
+        out of date (a moved sun) is traced now, with the objects placed for
+        ``frame`` (:meth:`FrozenScene.place`)."""
         cfg = self.ctx.config
-        if frame is not None and not cache.key:
-            self.frozen.place(frame)
+        place = None if frame is None else (lambda: self.frozen.place(frame))
         return GaussianLighting(self.ctx.scene, nodes, samples or cfg.samples, cache,
                                 trace_sun=not self.learn_sun_visibility, bounces=cfg.bounces,
-                                pattern=pattern)
+                                pattern=pattern, before_trace=place)
 
     def refresh_lighting(self, vals=None):
         """Re-trace the sky visibility of the Gaussians whose normal turned

@@ -342,13 +342,18 @@ class GaussianLighting:
     """Incident light per Gaussian for one render (see module docstring)."""
 
     def __init__(self, scene, nodes, samples, cache: LightingCache, trace_sun=True, bounces=0,
-                 pattern=0, follow_normals=False):
+                 pattern=0, follow_normals=False, before_trace=None):
         """``follow_normals``: when the cache is reused, first re-trace the sky
         directions of every Gaussian whose normal changed since they were
         traced (:func:`retrace_turned`); the integrator does, so normals
         edited through ``mi.traverse`` are lit as a fresh load lights them.
         The fit re-traces at its own times instead (every step would cost a
-        read-back of the normals)."""
+        read-back of the normals).
+
+        ``before_trace``: called (no arguments) just before the cache is
+        traced afresh (it is empty or its key no longer matches). The fit
+        puts the scene's moving objects where the cache's frame has them:
+        a trace goes through the scene as it was last pushed."""
         self.table = GaussianTable.build(nodes)
         self.samples = int(samples)
         self.bounces = int(bounces)
@@ -366,6 +371,8 @@ class GaussianLighting:
         local = fibonacci_hemisphere(M, _hash_rotation(G, self.pattern))
         self.sky_dirs = frames.to_world(local)           # (G*M,) differentiable in n
         if cache.key != key:
+            if before_trace is not None:
+                before_trace()
             with dr.suspend_grad():
                 cache.bounce_target = cache.bounce_source = cache.bounce_weight = None
                 if M:
