@@ -172,11 +172,11 @@ def refine_candidates(direction, spread_deg=10.0, count=12):
 
 
 #: Random two-way splits of the patches :func:`cross_validated_gain`
-#: averages over. One split's gain is noisy: on the Gaussians of one
-#: 8-minute street fit (seven random 80 % subsets, normals as stage 2 left
-#: them) one split's gain ranged over 0.008-0.080 and the standard deviation
-#: between eight splits was 0.015-0.045; an 8-minute KITTI fit's one split
-#: scored -0.002 and rejected the sun its 30-minute fits kept (0.065-0.108).
+#: averages over. One split's gain (the mean of its two halves) is noisy:
+#: in five stage-1 runs (the street and the KITTI excerpt, 8-minute budgets)
+#: the 16 halves of 8 splits ranged over -0.15 to 0.16 around means of
+#: 0.055-0.081, and one split once scored -0.008 on the street (and -0.002
+#: on KITTI) and rejected a sun that other runs kept.
 CV_SPLITS = 8
 
 
