@@ -197,6 +197,23 @@ def test_cross_validated_gain_averages_splits():
     assert np.mean(eight) > 0.0
 
 
+def test_sun_statistics_stay_finite_on_degenerate_input():
+    # One patch (no split has two halves) and luminance without any
+    # within-patch variance: the statistics are zeros, never NaN.
+    from mi_invrgbl.fit.selection import cross_validated_gains, sky_occlusion_gains
+    n = 60
+    patches = np.zeros(n, np.int64)
+    feats = (np.arange(n * 4).reshape(n, 4) % 3 > 0).astype(float)
+    lum = np.linspace(0.1, 0.5, n)
+    g = cross_validated_gains(lum, patches, np.ones(n), feats)
+    assert g.shape == (1,) and np.all(g == 0.0)
+    two = np.arange(n) % 2
+    flat = np.full(n, 0.3)
+    gain_sky, over, b = sky_occlusion_gains(PatchRegression(flat, two), feats[:, 0],
+                                            np.full(n, 0.02))
+    assert (gain_sky, over) == (0.0, 0.0) and np.isfinite(b)
+
+
 def test_render_samples_choice_keeps_to_a_budget(monkeypatch):
     """With a deadline, M for rendering scores the fit's own M first (its
     visibility is cached) and other M only while their predicted time fits."""

@@ -234,8 +234,8 @@ def sky_occlusion_gains(regression, s, ambient):
     res0 = regression.residual(regression.y)
     sky = [regression.residual(regression.y - b * np.log(ambient)) for b in SKY_EXPONENTS]
     j = int(np.argmin(sky))
-    both = min(regression.residual(regression.y - np.log(ambient ** b + rho * s))
-               for b in SKY_EXPONENTS for rho in SUN_RATIOS)
+    # ``fit`` gives the sun's best share of what ``ambient ** b`` alone leaves.
+    both = min(r * (1.0 - regression.fit(s, ambient ** b)[0]) for r, b in zip(sky, SKY_EXPONENTS))
     gain_sky = 1.0 - sky[j] / res0 if res0 > 0 else 0.0
     over = 1.0 - both / sky[j] if sky[j] > 0 else 0.0
     return float(gain_sky), float(over), float(SKY_EXPONENTS[j])
