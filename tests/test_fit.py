@@ -1133,6 +1133,7 @@ def test_stage2_start_chooses_among_sun_directions(scene_path, tmp_path, monkeyp
     under each and scored on the validation frames: offered a direction far
     from the true one first, the true one's start wins."""
     from mi_invrgbl.fit import selection
+    from mi_invrgbl.fit.stage2 import START_ROUGHNESS
     from fit_scene import SUN
     true = np.array(SUN) / np.linalg.norm(SUN)
     wrong = np.array([0.6, -0.5, 0.62]) / np.linalg.norm([0.6, -0.5, 0.62])
@@ -1150,6 +1151,15 @@ def test_stage2_start_chooses_among_sun_directions(scene_path, tmp_path, monkeyp
     assert on_true and on_wrong and max(on_true) > max(on_wrong)
     assert np.allclose(cands[start["chosen"]]["sun_direction"], true, atol=1e-5)
     assert np.allclose(metrics["selection"]["sun"]["direction"], true, atol=1e-5)
+    # The kept start is made again under each start roughness; the best
+    # validation score decides, and its roughness is what stage 2 starts from.
+    rough = metrics["selection"]["shading_init"]["start_roughness"]
+    scores = [c["psnr"] for c in rough["candidates"]]
+    assert rough["scored_on"] == "validation" and len(scores) == 1 + len(START_ROUGHNESS)
+    assert all(np.isfinite(scores))
+    assert rough["candidates"][int(np.argmax(scores))]["roughness"] == rough["chosen"]
+    # (the start's score of the kept candidate is the one above at the roughness stage 1 left)
+    assert np.isclose(scores[0], cands[start["chosen"]]["psnr"])
 
 
 def test_stage2_start_scores_the_facings_irradiance_against_the_selection(scene_path, tmp_path,

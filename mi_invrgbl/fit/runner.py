@@ -522,6 +522,13 @@ def start_stage2(state: FitState, frozen, initialise=True):
                               i + 1, np.round(c["sun_direction"], 2).tolist(), c["sun_irradiance_from"],
                               "-" if c["psnr"] is None else "%.2f" % c["psnr"])
                           for i, c in enumerate(sc["candidates"])), sc["chosen"] + 1))
+        if "start_roughness" in si:
+            sr = si["start_roughness"]
+            state.log("[fit] roughness at stage 2's start: %s (validation PSNR %s)" % (
+                "as stage 1 left it" if sr["chosen"] is None else "%.2g" % sr["chosen"], ", ".join(
+                    "%s %s dB" % ("as left" if c["roughness"] is None else "%.2g" % c["roughness"],
+                                  "-" if c["psnr"] is None else "%.2f" % c["psnr"])
+                    for c in sr["candidates"])))
         if "light_scale_scores" in si:
             state.log("[fit] light level at stage 2's start: %.2fx the fitted sky and sun (under "
                       "the fitted light the albedo reproducing stage 1 would clip at 1; starting "
