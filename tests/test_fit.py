@@ -1160,6 +1160,12 @@ def test_stage2_start_chooses_among_sun_directions(scene_path, tmp_path, monkeyp
     assert rough["candidates"][int(np.argmax(scores))]["roughness"] == rough["chosen"]
     # (the start's score of the kept candidate is the one above at the roughness stage 1 left)
     assert np.isclose(scores[0], cands[start["chosen"]]["psnr"])
+    # Stage 2 went on from the chosen roughness (4 steps at rate 1e-2 move it little).
+    ckpt = np.load(tmp_path / "checkpoints" / "latest.npz")
+    rough_now = np.concatenate([v for k, v in ckpt.items()
+                                if k.startswith("model/") and k.endswith(".roughness")])
+    had = 0.5 if rough["chosen"] is None else rough["chosen"]
+    assert abs(float(np.median(rough_now)) - had) < 0.06
 
 
 def test_stage2_start_scores_the_facings_irradiance_against_the_selection(scene_path, tmp_path,

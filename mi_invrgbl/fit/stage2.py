@@ -68,15 +68,14 @@ RETRACE_TURN_DEG = 3.0
 BOUNCE_ROUNDS = 3
 
 #: Roughness the start also tries for every Gaussian besides the one it has
-#: (the field's default 0.5 after stage 1), scored like the other start
-#: choices on the validation frames (:meth:`Stage2._choose_roughness`). On
-#: the KITTI excerpt, seen from a car, the road and walls are viewed at
-#: grazing angles, where a Fresnel lobe of roughness 0.5 reflects a bright
-#: sky strongly: for 45 % of the seen Gaussians (57 % of their image
-#: weight) the specular light alone came out brighter than stage 1's
-#: colour, the albedo sat at its floor and the start rendered too bright;
-#: with roughness 1 the same 8-minute stage 1 started at 18.69 dB
-#: instead of 17.71 (validation frames).
+#: (the import's, 0.5 unless ``import --roughness`` says otherwise), scored like the other start
+#: choices on the validation frames (:meth:`Stage2._choose_roughness`).
+#: Seen from a car, road and walls are viewed at grazing angles, where the
+#: Fresnel term of a lobe of roughness 0.5 reflects much of a bright sky:
+#: the specular light the start subtracts from stage 1's colour can exceed
+#: it, and the albedo then sits at its floor with the picture too bright.
+#: Both 8-minute fits measured chose 1: KITTI's start scored 16.85 / 17.06 /
+#: 17.22 dB at 0.5 / 0.75 / 1, the street's 27.59 / 27.76 / 27.83.
 START_ROUGHNESS = (0.75, 1.0)
 
 #: Learning rates of the scene-wide variables (the Gaussians' are in the field table).
