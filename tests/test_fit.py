@@ -1158,7 +1158,7 @@ def test_stage2_start_chooses_among_sun_directions(scene_path, tmp_path, monkeyp
     assert rough["scored_on"] == "validation" and len(scores) == 1 + len(START_ROUGHNESS)
     assert all(np.isfinite(scores))
     assert rough["candidates"][int(np.argmax(scores))]["roughness"] == rough["chosen"]
-    # (the start's score of the kept candidate is the one above at the roughness stage 1 left)
+    # (the first is the kept candidate's start above, at the imported roughness)
     assert np.isclose(scores[0], cands[start["chosen"]]["psnr"])
     # Stage 2 went on from the chosen roughness (4 steps at rate 1e-2 move it little).
     ckpt = np.load(tmp_path / "checkpoints" / "latest.npz")

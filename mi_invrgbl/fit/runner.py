@@ -525,8 +525,8 @@ def start_stage2(state: FitState, frozen, initialise=True):
         if "start_roughness" in si:
             sr = si["start_roughness"]
             state.log("[fit] roughness at stage 2's start: %s (validation PSNR %s)" % (
-                "as stage 1 left it" if sr["chosen"] is None else "%.2g" % sr["chosen"], ", ".join(
-                    "%s %s dB" % ("as left" if c["roughness"] is None else "%.2g" % c["roughness"],
+                "as imported" if sr["chosen"] is None else "%.2g" % sr["chosen"], ", ".join(
+                    "%s %s dB" % ("as imported" if c["roughness"] is None else "%.2g" % c["roughness"],
                                   "-" if c["psnr"] is None else "%.2f" % c["psnr"])
                     for c in sr["candidates"])))
         if "light_scale_scores" in si:

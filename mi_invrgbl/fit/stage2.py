@@ -68,8 +68,9 @@ RETRACE_TURN_DEG = 3.0
 BOUNCE_ROUNDS = 3
 
 #: Roughness the start also tries for every Gaussian besides the one it has
-#: (the import's, 0.5 unless ``import --roughness`` says otherwise), scored like the other start
-#: choices on the validation frames (:meth:`Stage2._choose_roughness`).
+#: (the import's, 0.5 unless ``import --roughness`` says otherwise), scored
+#: like the other start choices on the validation frames
+#: (:meth:`Stage2._choose_roughness`).
 #: Seen from a car, road and walls are viewed at grazing angles, where the
 #: Fresnel term of a lobe of roughness 0.5 reflects much of a bright sky:
 #: the specular light the start subtracts from stage 1's colour can exceed
