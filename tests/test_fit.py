@@ -1168,6 +1168,29 @@ def test_stage2_start_chooses_among_sun_directions(scene_path, tmp_path, monkeyp
     assert abs(float(np.median(rough_now)) - had) < 0.06
 
 
+def test_stage2_start_made_again_when_the_best_was_not_the_last(scene_path, tmp_path, monkeypatch):
+    """With no roughness to try, the best sun direction's start, made before
+    the last candidate's, is made again: the scene stage 2 fits holds the
+    chosen direction, not the last one tried."""
+    from mi_invrgbl.fit import selection, stage2
+    from fit_scene import SUN
+    true = np.array(SUN) / np.linalg.norm(SUN)
+    wrong = np.array([0.6, -0.5, 0.62]) / np.linalg.norm([0.6, -0.5, 0.62])
+    monkeypatch.setattr(selection, "alternative_directions",
+                        lambda *a: [true.tolist(), wrong.tolist()])
+    monkeypatch.setattr(stage2, "START_ROUGHNESS", ())
+    metrics = run_fit(scene_path, small_config(tmp_path, sun="on", render_samples="8",
+                                               stage1_iterations=30, stage2_iterations=4),
+                      log=lambda *a: None)
+    si = metrics["selection"]["shading_init"]
+    cands = si["start_candidates"]["candidates"]
+    assert si["start_roughness"]["chosen"] is None and len(si["start_roughness"]["candidates"]) == 1
+    chosen = np.array(cands[si["start_candidates"]["chosen"]]["sun_direction"])
+    assert np.allclose(chosen, true, atol=1e-5)
+    ckpt = np.load(tmp_path / "checkpoints" / "latest.npz")
+    assert np.allclose(ckpt["sky/sun_direction"].ravel(), true, atol=1e-4)
+
+
 def test_stage2_start_scores_the_facings_irradiance_against_the_selection(scene_path, tmp_path,
                                                                          monkeypatch):
     """Where the facings' sun irradiance disagrees with the lighting

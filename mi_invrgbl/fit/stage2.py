@@ -290,7 +290,9 @@ class Stage2:
             ctx.params.update()
             return self._init_shading(trust_facings=trust)
         if not ctx.use_sun:
-            report = self._choose_roughness(start(None, False), lambda: start(None, False))
+            report = start(None, False)
+            report = self._choose_roughness(report, self._start_score(report), True,
+                                            lambda: start(None, False))
             self.build_optimizer()
             return report
         directions = sun.get("alternatives") or [
@@ -307,10 +309,11 @@ class Stage2:
                 report = start(d, True)
                 trials.append((self._start_score(report), d, True, report))
         best = max(range(len(trials)), key=lambda i: trials[i][0])
-        _, d, trust, report = trials[best]
-        if best != len(trials) - 1:
-            report = start(d, trust)
-        report = self._choose_roughness(report, lambda: start(d, trust))
+        score, d, trust, report = trials[best]
+        # (Not made again here: the roughness choice makes it again only
+        # where the imported roughness wins.)
+        report = self._choose_roughness(report, score, best == len(trials) - 1,
+                                        lambda: start(d, trust))
         if len(trials) > 1:
             report["start_candidates"] = {
                 "scored_on": "validation", "chosen": best,
@@ -323,24 +326,30 @@ class Stage2:
         self.build_optimizer()
         return report
 
-    def _choose_roughness(self, report, restart):
+    def _choose_roughness(self, kept, score, kept_is_current, restart):
         """The start made again (``restart``) with every Gaussian's roughness
         at each of :data:`START_ROUGHNESS`; the roughness whose start scores
         best on the validation frames is kept, the one the Gaussians had
-        included. ``report``: the start made with the roughness they have.
-        Returns the kept start's report, with ``start_roughness``."""
+        included. ``kept``: the report of the start made with the roughness
+        they have, ``score`` its validation score; ``kept_is_current``:
+        whether the scene still holds that start (it is made again only if
+        it wins and the scene no longer holds it; a start can be made from
+        any earlier one). Returns the kept start's report, with
+        ``start_roughness``."""
         model = self.ctx.model
         key = BY_NAME["roughness"].variable
         had = {n: node.values[key] for n, node in model.nodes.items()}
-        trials = [(self._start_score(report), None, report)]
+        trials = [(score, None, kept)]
+        current = 0 if kept_is_current else None
         for r in START_ROUGHNESS:
             for node in model.nodes.values():
                 node.values[key] = dr.full(mi.Float, r, node.count)
             rep = restart()
             trials.append((self._start_score(rep), r, rep))
+            current = len(trials) - 1
         best = max(range(len(trials)), key=lambda i: trials[i][0])
         _, r, report = trials[best]
-        if best != len(trials) - 1:
+        if best != current:
             for name, node in model.nodes.items():
                 node.values[key] = had[name] if r is None else dr.full(mi.Float, r, node.count)
             report = restart()
