@@ -10,7 +10,7 @@ from .losses import LossWeights
 #: cannot be resumed). Iteration counts, logging, output and the options that
 #: only force a selection (whose outcome the checkpoint records) are not among them.
 MODEL_FIELDS = ("batch_rays", "lidar_batch_rays", "fit_width", "lidar_columns", "max_hits", "min_transmittance",
-                "samples", "sky_patterns", "pixel_grid", "bounces", "shadowing", "rgb_space", "weights", "bilateral_sigma", "slic_size", "lr_scale", "densify_every",
+                "samples", "sky_patterns", "pixel_grid", "bounces", "shadowing", "diffuse_fresnel", "rgb_space", "weights", "bilateral_sigma", "slic_size", "lr_scale", "densify_every",
                 "densify_until", "prune_opacity", "densify_grad", "densify_fraction", "split_scale",
                 "max_gaussians", "stage1_range", "stage1_drop", "stage1_sky", "seed", "fit_response",
                 "sun_candidates", "sun_gaussians", "per_frame_visibility", "learn_sun_direction",
@@ -56,6 +56,16 @@ class FitConfig:
     #: one run each) Smith scored 0.73 and 0.09 dB higher on the validation
     #: frames and cut the roughness error from 0.32 to 0.27 and 0.31 to 0.27.
     shadowing: str = "smith"
+    #: Diffuse light through a dielectric coat (``invrgbl``'s
+    #: ``diffuse_fresnel``): the Lambertian term weighted by the Fresnel
+    #: transmission at the light's and the viewer's angle, as Mitsuba's
+    #: ``roughplastic`` weights its diffuse lobe. Off: the paper's Lambertian
+    #: term. Seen along a street the road and sidewalk are viewed about 81
+    #: degrees from their normal, where ``roughplastic`` lets 0.50-0.57 of
+    #: the diffuse light out against 0.81-0.94 on the facades, and a plain
+    #: Lambertian fit reads them about half as bright as they are (README,
+    #: "Where the albedo error sits").
+    diffuse_fresnel: bool = False
     #: Colour space the camera loss compares in (``losses.RGB_SPACES``).
     #: sRGB weighs an error as the 8-bit image and PSNR do, so dark pixels
     #: (shadow, foliage) count for more than in linear light. Stage 1 on the

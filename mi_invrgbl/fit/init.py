@@ -57,6 +57,7 @@ def load_state(scene_path, config: FitConfig, log=print) -> FitState:
         camera_integrator = mi.load_dict({"type": "invrgbl", "samples": config.samples})
     # The fit's choice, whatever the imported scene's integrator says.
     camera_integrator.shadowing = config.shadowing
+    camera_integrator.diffuse_fresnel = bool(config.diffuse_fresnel)
     lidar_integrator = mi.load_dict({"type": "lidar_return", "max_hits": config.max_hits,
                                      "min_transmittance": config.min_transmittance})
     sky = None

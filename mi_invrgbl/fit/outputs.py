@@ -62,7 +62,9 @@ def fitted_xml(ctx, lidar=False):
     else:
         samples = ctx.selection.get("samples", {}).get("samples", ctx.config.samples)
         integ = xml.integrator("invrgbl", samples=int(samples), bounces=int(ctx.config.bounces),
-                               shadowing=str(ctx.config.shadowing), **traversal)
+                               shadowing=str(ctx.config.shadowing),
+                               **({"diffuse_fresnel": True} if ctx.config.diffuse_fresnel else {}),
+                               **traversal)
         if ctx.sun_visibility_learned:
             # The fitted v_sun holds for the fitted sun; relight/night switch to trace.
             xml.set_child_param(integ, "string", "sun_visibility", "attribute")

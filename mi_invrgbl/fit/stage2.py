@@ -39,6 +39,7 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
+from ..physics import brdf
 from ..physics import hits as hitlib
 from ..physics.colour import LUMINANCE
 from ..physics.lighting import (GaussianLighting, GaussianTable, LightingCache, light_at,
@@ -409,9 +410,16 @@ class Stage2:
             seen = shading_init.seen_weight(
                 table, [(self.frozen.camera[f.index], f.camera.valid())
                         for f in ctx.train_frames if f.index in self.frozen.camera]) > 0.05
+            fresnel = bool(ctx.config.diffuse_fresnel)
             if suns:
                 normals = np.array(table.normal, np.float64).T
                 cos = np.maximum(np.sum(normals * sun_dir, axis=1), 0.0)
+                if fresnel:
+                    # The render's sun term carries the coat's transmission
+                    # on the way in: an effective cosine keeps the sunlit /
+                    # shadowed ratios below in step with it.
+                    cos = cos * np.array(brdf.fresnel_transmission(
+                        mi.Float(cos.astype(np.float32)), ctx.camera_integrator.f0), np.float64)
                 rho = np.concatenate([model.nodes[n].numpy("lidar_albedo") for n in names]) \
                     if any(f.lidar is not None for f in ctx.train_frames) else None
                 # Shadowed Gaussians are lit by the sky and by what their
@@ -452,7 +460,7 @@ class Stage2:
             # stage 1's colour is diffuse plus specular, and an albedo that
             # reproduced the whole colour as diffuse light started the
             # KITTI excerpt 0.8 dB below stage 1, 70 % of the pixels too bright.
-            spec = self.mean_specular(names)
+            spec, t_out = self.mean_specular(names, transmission=fresnel)
             report["specular_share"] = (float(np.sum((spec[seen] @ LUMINANCE)) / max(
                 float(np.sum(colour[seen] @ LUMINANCE)), 1e-12)) if seen.any() else 0.0)
             # Where the fitted light is too dark for the colours stage 1
@@ -463,7 +471,7 @@ class Stage2:
             # which costs PSNR where that sky is not saturated white. So the
             # level is a choice: no raise, the full raise and three steps
             # between (geometric), each scored on the validation frames.
-            k_max = shading_init.light_scale(colour - spec, D + sun_term + bounce, seen)
+            k_max = shading_init.light_scale(colour - spec, (D + sun_term + bounce) * t_out, seen)
 
             def indirect(albedo):
                 # The render's bounce light at level 1 for ``albedo``: what the
@@ -473,7 +481,8 @@ class Stage2:
                     leaving = (albedo * (D + sun_term + ind)).T.astype(np.float32)
                     ind = shading_init.as_rows(lighting.pass_on(mi.Color3f(leaving)))
                 return ind
-            light = (colour, spec, D, sun_term, bounce, indirect if lighting.bounces > 0 else None)
+            light = (colour, spec, D, sun_term, bounce, indirect if lighting.bounces > 0 else None,
+                     t_out)
             sky0, E0 = dr.detach(ctx.params[ctx.sky_key]), E if suns else None
             levels = [1.0] if k_max <= 1.0 else [float(k_max ** q) for q in (0, 0.25, 0.5, 0.75, 1)]
             scores = {}
@@ -506,32 +515,40 @@ class Stage2:
         direct light (one bounce: ``W (a * direct)``), not stage 1's whole
         colour ``W c``. On the fit tests' street, without the rounds, the
         start rendered its pixels 0.054 darker than stage 1's colours."""
-        colour, spec, D, sun_term, bounce, indirect = light
+        colour, spec, D, sun_term, bounce, indirect, t_out = light
         ctx, model = self.ctx, self.ctx.model
         ctx.params[ctx.sky_key] = sky0 * k
         if E0 is not None:
             ctx.params[ctx.sun_key] = mi.Color3f(*[float(x) for x in E0 * k])
         ctx.params.update()
-        albedo = shading_init.albedo_from_shading(colour - spec * k, D * k + bounce, sun_term * k)
+        # ``t_out``: the diffuse light's way out through the coat, per
+        # Gaussian as the training cameras see it (1 without diffuse_fresnel).
+        albedo = shading_init.albedo_from_shading(colour - spec * k, (D * k + bounce) * t_out,
+                                                  sun_term * k * t_out)
         for _ in range(BOUNCE_ROUNDS if indirect is not None else 0):
-            albedo = shading_init.albedo_from_shading(colour - spec * k, (D + indirect(albedo)) * k,
-                                                      sun_term * k)
+            albedo = shading_init.albedo_from_shading(colour - spec * k,
+                                                      (D + indirect(albedo)) * k * t_out,
+                                                      sun_term * k * t_out)
         for name, a in zip(names, shading_init.split_by_node(albedo, table, counts)):
             model.nodes[name].values["albedo"] = jit_array(mi.Float, a)
         self.build_optimizer()
 
-    def mean_specular(self, names, frames=8):
+    def mean_specular(self, names, frames=8, transmission=False):
         """Per Gaussian (rows in ``names``' order), the specular radiance it
         sends to the training cameras under the scene's current light,
         averaged with its blend weights over up to ``frames`` training frames
         spread over the sequence; 0 for Gaussians those frames do not see.
+        Returns it with, per Gaussian (a column), the mean Fresnel
+        transmission of its diffuse light towards those cameras with
+        ``transmission`` (``diffuse_fresnel``), else ones.
 
         The specular part of the shading does not depend on the albedo, so it
         is rendered once with the albedo at zero (no diffuse, no bounce)."""
         ctx = self.ctx
         train = [f for f in ctx.train_frames if f.index in self.frozen.camera]
         if not train:
-            return np.zeros((sum(ctx.model.nodes[n].count for n in names), 3))
+            count = sum(ctx.model.nodes[n].count for n in names)
+            return np.zeros((count, 3)), np.ones((count, 1))
         pick = np.unique(np.linspace(0, len(train) - 1, min(frames, len(train))).round().astype(int))
         # The model's values, not :meth:`values`: the optimiser still holds
         # the sky and sun of its last build, and writing them back would undo
@@ -542,7 +559,7 @@ class Stage2:
         for n in names:
             key = "%s.%s" % (n, BY_NAME["albedo"].variable)
             vals[key] = dr.zeros(mi.Float, dr.width(vals[key]))
-        acc, wsum = None, None
+        acc, wsum, tsum = None, None, None
         with dr.suspend_grad():
             for i in pick:
                 f = train[i]
@@ -550,7 +567,7 @@ class Stage2:
                 nodes = self.frozen.nodes(f, vals)
                 lighting = self.lighting(nodes, self.frozen.cache(f), frame=f)
                 g = frozen_gaussian_hits(nodes, f.camera.rays, fh)
-                colour, *_ = self.ctx.camera_integrator.shade_gaussian_hits(
+                colour, _, n, _, _ = self.ctx.camera_integrator.shade_gaussian_hits(
                     lighting, nodes, f.camera.rays, fh, g)
                 gi = np.array(lighting.table.global_index(fh.node_ids, fh.prims))
                 w = np.array(fh.weight, np.float64)
@@ -559,10 +576,20 @@ class Stage2:
                 if acc is None:
                     acc = np.zeros((lighting.table.total, 3))
                     wsum = np.zeros(lighting.table.total)
+                    tsum = np.zeros(lighting.table.total)
                 wsum += np.bincount(gi, w, minlength=wsum.shape[0])
                 for k in range(3):
                     acc[:, k] += np.bincount(gi, w * c[:, k], minlength=acc.shape[0])
-        return np.where(wsum[:, None] > 1e-6, acc / np.maximum(wsum, 1e-6)[:, None], 0.0)
+                if transmission:
+                    _, d = hitlib.expand_rays(f.camera.rays, fh)
+                    t = np.array(brdf.fresnel_transmission(dr.abs(dr.dot(n, d)),
+                                                                 lighting.f0), np.float64)
+                    tsum += np.bincount(gi, w * t, minlength=tsum.shape[0])
+        seen = wsum > 1e-6
+        spec = np.where(seen[:, None], acc / np.maximum(wsum, 1e-6)[:, None], 0.0)
+        t_out = np.where(seen, tsum / np.maximum(wsum, 1e-6), 1.0) if transmission else \
+            np.ones_like(wsum)
+        return spec, t_out[:, None]
 
     def _starting_score(self):
         """PSNR of the current starting point on up to three of the frames
@@ -581,7 +608,9 @@ class Stage2:
         place = None if frame is None else (lambda: self.frozen.place(frame))
         return GaussianLighting(self.ctx.scene, nodes, samples or cfg.samples, cache,
                                 trace_sun=not self.learn_sun_visibility, bounces=cfg.bounces,
-                                pattern=pattern, before_trace=place)
+                                pattern=pattern, before_trace=place,
+                                diffuse_fresnel=bool(cfg.diffuse_fresnel),
+                                f0=self.ctx.camera_integrator.f0)
 
     def refresh_lighting(self, vals=None):
         """Re-trace the sky visibility of the Gaussians whose normal turned

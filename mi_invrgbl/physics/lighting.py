@@ -35,6 +35,7 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
+from . import brdf
 from . import hits as hitlib
 from .host_arrays import jit_array
 
@@ -342,7 +343,8 @@ class GaussianLighting:
     """Incident light per Gaussian for one render (see module docstring)."""
 
     def __init__(self, scene, nodes, samples, cache: LightingCache, trace_sun=True, bounces=0,
-                 pattern=0, follow_normals=False, before_trace=None):
+                 pattern=0, follow_normals=False, before_trace=None, diffuse_fresnel=False,
+                 f0=brdf.F0_DEFAULT):
         """``follow_normals``: when the cache is reused, first re-trace the sky
         directions of every Gaussian whose normal changed since they were
         traced (:func:`retrace_turned`); the integrator does, so normals
@@ -353,8 +355,15 @@ class GaussianLighting:
         ``before_trace``: called (no arguments) just before the cache is
         traced afresh (it is empty or its key no longer matches). The fit
         puts the scene's moving objects where the cache's frame has them:
-        a trace goes through the scene as it was last pushed."""
+        a trace goes through the scene as it was last pushed.
+
+        ``diffuse_fresnel``: the diffuse term takes each light through a
+        dielectric coat of reflectance ``f0`` on the way in
+        (:func:`~mi_invrgbl.physics.brdf.fresnel_transmission` of its angle
+        to the normal); the way out depends on the viewer and is the
+        integrator's. The bounce light a Gaussian receives is not weighted."""
         self.table = GaussianTable.build(nodes)
+        self.diffuse_fresnel, self.f0 = bool(diffuse_fresnel), f0
         self.samples = int(samples)
         self.bounces = int(bounces)
         self.pattern = int(pattern)
@@ -405,7 +414,11 @@ class GaussianLighting:
         self.cache = cache
         # v_i L_sky(w_i): differentiable in the sky's coefficients and normals.
         self.sky_radiance = environment_radiance(scene, self.sky_dirs) * cache.sky_visibility
-        self.diffuse_sky = mi.Color3f(*[dr.block_sum(self.sky_radiance[c], M) / M for c in range(3)]) \
+        sky_in = self.sky_radiance
+        if diffuse_fresnel and M:
+            # The samples' local z is their cosine to the normal.
+            sky_in = sky_in * brdf.fresnel_transmission(local.z, f0)
+        self.diffuse_sky = mi.Color3f(*[dr.block_sum(sky_in[c], M) / M for c in range(3)]) \
             if M else dr.zeros(mi.Color3f, G)
         self.light_dir, self.light_irr = [], []
         for (kind, emitter), vis in zip(self.lights, cache.light_visibility):
@@ -419,7 +432,10 @@ class GaussianLighting:
         # normal of every hit on it): sky, lights, and the bounce.
         self.direct = mi.Color3f(self.diffuse_sky)
         for d_l, e_l in zip(self.light_dir, self.light_irr):
-            self.direct += e_l * dr.maximum(dr.dot(table.normal, d_l), 0.0) * dr.inv_pi
+            cos_l = dr.maximum(dr.dot(table.normal, d_l), 0.0)
+            if diffuse_fresnel:
+                cos_l = cos_l * brdf.fresnel_transmission(cos_l, f0)
+            self.direct += e_l * cos_l * dr.inv_pi
         self.indirect = self.bounce_light(nodes) if self.bounces > 0 else dr.zeros(mi.Color3f, G)
         self.diffuse = self.direct + self.indirect
 

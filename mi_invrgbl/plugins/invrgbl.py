@@ -54,6 +54,14 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
          (the paper's Cook-Torrance V-cavity) or ``smith`` (Smith's GGX term,
          as Mitsuba's microfacet BSDFs; it reflects about half as much near
          grazing, see :mod:`mi_invrgbl.physics.brdf`). (Default: ``vcavity``)
+     * - diffuse_fresnel
+       - |bool|
+       - The diffuse light passes a dielectric coat of reflectance ``f0`` on
+         the way in and out: the Lambertian term is weighted by the coat's
+         Fresnel transmission ``1 - F`` at the light's and at the viewer's
+         angle, as Mitsuba's ``roughplastic`` weights its diffuse lobe
+         (:func:`~mi_invrgbl.physics.brdf.fresnel_transmission`). false: the
+         paper's plain Lambertian term. (Default: false)
      * - hide_emitters
        - |bool|
        - Show the background as black instead of the sky. (Default: false)
@@ -109,6 +117,7 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
         self.min_transmittance = float(props.get("min_transmittance", 1e-3))
         self.sun_visibility = str(props.get("sun_visibility", "trace"))
         self.f0 = float(props.get("f0", brdf.F0_DEFAULT))
+        self.diffuse_fresnel = bool(props.get("diffuse_fresnel", False))
         self.hide_emitters = bool(props.get("hide_emitters", False))
         self.shadowing = str(props.get("shadowing", "vcavity"))
         if self.shadowing not in brdf.SHADOWING:
@@ -161,6 +170,12 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
             wi = fibonacci_direction(mi.Float(i), M, rot)
             li = dr.gather(mi.Color3f, lighting.sky_radiance, j, active)
             specular += li * brdf.specular(wi, wo, tau, self.f0, self.shadowing) * (dr.pi / M)
+        if lighting.diffuse_fresnel:
+            # Diffuse light leaves through the coat too (the way in is in
+            # the lighting's diffuse term). |cos|: the diffuse term is lit
+            # whichever side the viewer is on, so the coat is two-sided.
+            irradiance_pi = irradiance_pi * brdf.fresnel_transmission(
+                dr.abs(mi.Frame3f.cos_theta(wo)), lighting.f0)
         colour = albedo * irradiance_pi + specular
         colour = dr.select(active & dr.all(dr.isfinite(colour)), colour, 0.0)
         return colour, albedo, n, tau, rho_l
@@ -230,7 +245,8 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
         if nodes:
             lighting = GaussianLighting(scene, nodes, self.samples, self.cache, follow_normals=True,
                                         trace_sun=self.sun_visibility == "trace",
-                                        bounces=self.bounces)
+                                        bounces=self.bounces, diffuse_fresnel=self.diffuse_fresnel,
+                                        f0=self.f0)
             colour, albedo, n, tau, rho_l = self.shade_gaussian_hits(lighting, nodes, rays, hit_list, g)
         else:
             colour, albedo, n, tau, rho_l = mi.Color3f(0), mi.Color3f(0), mi.Vector3f(0), 0.0, 0.0
