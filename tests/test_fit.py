@@ -1260,7 +1260,8 @@ def start_against_stage1(scene_path, out, unclipped=False, **config):
                                                {"b": mi.Color3f(at_bound)},
                                                {"b": mi.Color3f(0.0)})["b"]
             a &= np.array(w[0]) < 0.01
-        d = (np.array(pics[0]).T - np.array(pics[1]).T) / np.array(alpha[0])[:, None]
+        cover = np.maximum(np.array(alpha[0]), 1e-6)[:, None]
+        d = (np.array(pics[0]).T - np.array(pics[1]).T) / cover
         diffs.append(d[a])
     d = np.concatenate(diffs)
     return si, float(d.mean()), float(np.sqrt(np.mean(d ** 2)))

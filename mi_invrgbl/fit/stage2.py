@@ -419,7 +419,7 @@ class Stage2:
                     # on the way in: an effective cosine keeps the sunlit /
                     # shadowed ratios below in step with it.
                     cos = cos * np.array(brdf.fresnel_transmission(
-                        mi.Float(cos.astype(np.float32)), ctx.camera_integrator.f0), np.float64)
+                        jit_array(mi.Float, cos), ctx.camera_integrator.f0), np.float64)
                 rho = np.concatenate([model.nodes[n].numpy("lidar_albedo") for n in names]) \
                     if any(f.lidar is not None for f in ctx.train_frames) else None
                 # Shadowed Gaussians are lit by the sky and by what their
