@@ -1270,7 +1270,7 @@ def start_against_stage1(scene_path, out, unclipped=False, **config):
 def test_stage2_start_leaves_the_specular_light_out_of_the_albedo(scene_path, tmp_path,
                                                                   monkeypatch):
     """Stage 1's colour is diffuse plus specular light. The start's albedo
-    takes the specular part (:meth:`Stage2.mean_specular`) out and is solved
+    takes the specular part (:meth:`Stage2.seen_by_cameras`) out and is solved
     with the render's own bounce light, so the start renders stage 1's
     picture: its pixels are neither brighter nor darker on average, and
     closer than with an albedo that takes the whole colour as diffuse light."""
@@ -1282,7 +1282,7 @@ def test_stage2_start_leaves_the_specular_light_out_of_the_albedo(scene_path, tm
         count = sum(self.ctx.model.nodes[n].count for n in names)
         return np.zeros((count, 3)), np.ones((count, 1))
 
-    monkeypatch.setattr(Stage2, "mean_specular", no_specular)
+    monkeypatch.setattr(Stage2, "seen_by_cameras", no_specular)
     _, bias0, rmse0 = start_against_stage1(scene_path, tmp_path / "without")
     print(si["specular_share"], bias, rmse, bias0, rmse0)
     assert 0.0 < si["specular_share"] < 1.0
@@ -1341,13 +1341,13 @@ def test_stage2_start_with_the_diffuse_light_through_a_coat(scene_path, tmp_path
         return int(inside.sum()), float(np.median(d)), float(np.mean(d))
 
     n, median, mean = start("coat")
-    original = Stage2.mean_specular
+    original = Stage2.seen_by_cameras
 
     def way_out_as_1(self, names, frames=8, transmission=False):
         spec, t_out = original(self, names, frames, transmission)
         return spec, np.ones_like(t_out)
 
-    monkeypatch.setattr(Stage2, "mean_specular", way_out_as_1)
+    monkeypatch.setattr(Stage2, "seen_by_cameras", way_out_as_1)
     n1, median1, mean1 = start("coat_out1")
     print(n, median, mean, n1, median1, mean1)
     assert n > 50 and n1 > 50

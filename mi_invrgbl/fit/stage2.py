@@ -460,7 +460,7 @@ class Stage2:
             # stage 1's colour is diffuse plus specular, and an albedo that
             # reproduced the whole colour as diffuse light started the
             # KITTI excerpt 0.8 dB below stage 1, 70 % of the pixels too bright.
-            spec, t_out = self.mean_specular(names, transmission=fresnel)
+            spec, t_out = self.seen_by_cameras(names, transmission=fresnel)
             report["specular_share"] = (float(np.sum((spec[seen] @ LUMINANCE)) / max(
                 float(np.sum(colour[seen] @ LUMINANCE)), 1e-12)) if seen.any() else 0.0)
             # Where the fitted light is too dark for the colours stage 1
@@ -533,8 +533,9 @@ class Stage2:
             model.nodes[name].values["albedo"] = jit_array(mi.Float, a)
         self.build_optimizer()
 
-    def mean_specular(self, names, frames=8, transmission=False):
-        """Per Gaussian (rows in ``names``' order), the specular radiance it
+    def seen_by_cameras(self, names, frames=8, transmission=False):
+        """What the training cameras see of each Gaussian, averaged over their
+        views: per Gaussian (rows in ``names``' order), the specular radiance it
         sends to the training cameras under the scene's current light,
         averaged with its blend weights over up to ``frames`` training frames
         spread over the sequence; 0 for Gaussians those frames do not see.
