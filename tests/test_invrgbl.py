@@ -382,9 +382,9 @@ def test_zero_opacity_gaussians_render_the_background():
     assert np.all(img[..., ALPHA] == 0)
 
 
-@pytest.mark.parametrize("bounces", [0, 1])
+@pytest.mark.parametrize("bounces,coat", [(0, False), (1, False), (1, True)])
 @pytest.mark.parametrize("case", ["zero_size", "huge", "tau_zero", "tau_one", "grazing"])
-def test_degenerate_inputs_give_finite_output(case, bounces):
+def test_degenerate_inputs_give_finite_output(case, bounces, coat):
     scale, tau = 0.1, 0.4
     origin, target = [0, -3, 3], [0, 0, 0]
     if case == "zero_size":
@@ -400,7 +400,8 @@ def test_degenerate_inputs_give_finite_output(case, bounces):
     g, c = layer(extent=1.0, roughness=tau)
     n = c.shape[0]
     g["scales"] = mi.TensorXf(np.tile([[scale, scale, scale * 1e-2]], (n, 1)).astype(np.float32))
-    img, _ = render({"integrator": {"type": "invrgbl", "samples": 8, "bounces": bounces},
+    img, _ = render({"integrator": {"type": "invrgbl", "samples": 8, "bounces": bounces,
+                                    "diffuse_fresnel": coat},
                      "ground": g, "sky": sky(), "blob": single_gaussian([0, 0, 0.5], [0.2, 0.2, 0.2]),
                      "sensor": camera(origin, target, size=16)}, spp=2)
     assert np.all(np.isfinite(img))
