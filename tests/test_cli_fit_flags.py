@@ -30,6 +30,8 @@ def test_every_flag_sets_its_field():
             cfg = parse(flag, "rgb2lidar=0")
         elif name in ("output", "render_samples"):
             cfg = parse(flag, "7")
+        elif name == "densify_fraction":
+            cfg = parse(flag, "0.05")
         else:
             cfg = parse(flag, str(default + 1))
         changed = [f.name for f in dataclasses.fields(cfg) if getattr(cfg, f.name) != getattr(defaults, f.name)]
@@ -45,6 +47,8 @@ def test_every_flag_sets_its_field():
     (["--sky-patterns", "0"], "--sky-patterns must be positive"),
     (["--range-weight", "-1"], "--range-weight must be in 0.."),
     (["--range-weight", "nan"], "--range-weight must be in 0.."),
+    (["--densify-fraction", "1.5"], "--densify-fraction must be in 0..1"),
+    (["--densify-fraction", "nan"], "--densify-fraction must be in 0..1"),
 ])
 def test_bad_values_are_refused(args, message):
     with pytest.raises(UserError, match=message):

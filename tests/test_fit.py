@@ -518,6 +518,36 @@ def test_densify_carries_adam_moments(scene_path, tmp_path):
     assert ok and np.isfinite(loss)
 
 
+def test_densify_screen_ranks_by_the_gradient_times_the_distance(scene_path, tmp_path):
+    # With densify_screen a Gaussian's accumulated positional gradient is
+    # the metric one times its distance from the step's camera (about its
+    # gradient in image space). The same seed takes the same step either
+    # way, so the ratio of the two accumulations is that distance, taken
+    # here from the frame's camera pose in frames.json and the Gaussians' centres.
+    import copy
+    from mi_invrgbl.fit.init import load_state
+    from mi_invrgbl.fit.stage1 import Stage1
+    acc, origin, centres = {}, None, None
+    for screen in (False, True):
+        state = load_state(scene_path, small_config(tmp_path, densify_screen=screen),
+                           log=lambda *a: None)
+        s1 = Stage1(state)
+        pick = copy.deepcopy(s1.rng).integers(0, len(state.train_frames))
+        frame = state.train_frames[pick]
+        record = [r for r in state.frames if r.index == frame.index][0]
+        origin = np.asarray(record.camera_to_world, np.float64)[:3, 3]   # frames.json's camera
+        centres = state.model.nodes["background"].numpy("center").astype(np.float64)
+        s1.iteration(1)
+        acc[screen] = np.array(s1.grad_accum["background"][0], np.float64)
+    seen = acc[False] > 1e-12
+    assert seen.sum() > 50, seen.sum()
+    distance = np.linalg.norm(centres - origin, axis=1)
+    ratio = acc[True][seen] / acc[False][seen]
+    assert np.allclose(ratio, distance[seen], rtol=1e-3), np.abs(ratio / distance[seen] - 1).max()
+    assert not acc[True][~seen].any()
+    assert distance.min() > 0.5 and distance.max() > 2 * distance.min()   # the ranking changes
+
+
 def test_step_with_finite_loss_but_infinite_gradient_is_rolled_back():
     # sqrt at 0: the loss is 0, its gradient infinite. One read-back checks
     # both; the step is skipped, learning rates halved, the value kept.
@@ -809,6 +839,11 @@ def test_optimizer_damping_scales_the_schedules_and_survives_a_rebuild():
     assert anneal_lr_factor(1.0) == pytest.approx(ANNEAL_END) == anneal_lr_factor(2.0)
     f = [anneal_lr_factor(p) for p in np.linspace(0, 1, 50)]
     assert all(a >= b for a, b in zip(f, f[1:])) and dr.all(mi.Bool(True))
+    # The same shape from FitConfig's anneal_from / anneal_end; from 1: none.
+    assert anneal_lr_factor(0.5, 0.5, 0.03) == 1.0
+    assert anneal_lr_factor(0.75, 0.5, 0.03) == pytest.approx(0.03 ** 0.5)
+    assert anneal_lr_factor(1.0, 0.5, 0.03) == pytest.approx(0.03)
+    assert anneal_lr_factor(1.0, 1.0, 0.03) == 1.0
 
 
 def test_batch_probe_keeps_larger_batches_only_where_they_are_cheap():

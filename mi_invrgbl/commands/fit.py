@@ -98,6 +98,12 @@ FLAGS = (
      "schedule from the measured speed, early stop on validation frames (overrides "
      "--stage1/--stage2; 0: none)", {}),
     ("--max-gaussians", "max_gaussians", "densification cap", {}),
+    ("--densify-fraction", "densify_fraction",
+     "share of the Gaussians stage 1 splits at each densification (those with the largest "
+     "positional gradients)", {}),
+    ("--densify-screen", "densify_screen",
+     "rank the Gaussians to split by their positional gradient in image space (the gradient "
+     "in metres times the distance from the camera) instead of in metres", {}),
     ("--checkpoint-every", "checkpoint_every", "iterations between checkpoints", {}),
     ("--eval-every", "eval_every", "iterations between held-out evaluations", {}),
     ("--resume", "resume", "continue the fit in the output folder from its "
@@ -169,6 +175,8 @@ def config_from_args(args):
                         % values["budget_minutes"])
     if not 0 <= values["stage1_range"] <= MAX_WEIGHT:
         raise UserError("--range-weight must be in 0..%g (got %r)" % (MAX_WEIGHT, values["stage1_range"]))
+    if not 0 <= values["densify_fraction"] <= 1:     # (also refuses nan)
+        raise UserError("--densify-fraction must be in 0..1 (got %r)" % values["densify_fraction"])
     render_samples = str(values["render_samples"]).strip().lower()
     if render_samples != "auto" and not (render_samples.isdigit() and int(render_samples) >= 1):
         raise UserError("--render-samples must be 'auto' or a positive number (got %r)"

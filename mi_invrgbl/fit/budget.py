@@ -265,13 +265,14 @@ ANNEAL_FROM = 0.7
 ANNEAL_END = 0.1
 
 
-def anneal_lr_factor(progress):
+def anneal_lr_factor(progress, start=ANNEAL_FROM, end=ANNEAL_END):
     """Stage 1's factor on its other learning rates (not the positions,
-    :func:`position_lr_factor`) at ``progress`` (0..1) of the stage."""
+    :func:`position_lr_factor`) at ``progress`` (0..1) of the stage: 1 up
+    to ``start``, then exponentially down to ``end`` at 1."""
     p = min(1.0, max(0.0, progress))
-    if p <= ANNEAL_FROM:
+    if p <= start or start >= 1.0:
         return 1.0
-    return ANNEAL_END ** ((p - ANNEAL_FROM) / (1.0 - ANNEAL_FROM))
+    return end ** ((p - start) / (1.0 - start))
 
 
 @dataclass

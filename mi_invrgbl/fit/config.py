@@ -5,13 +5,15 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 
 from .losses import LossWeights
+from .budget import ANNEAL_END, ANNEAL_FROM
 
 #: Fields that change the fitted model (a checkpoint written with other values
 #: cannot be resumed). Iteration counts, logging, output and the options that
 #: only force a selection (whose outcome the checkpoint records) are not among them.
 MODEL_FIELDS = ("batch_rays", "lidar_batch_rays", "fit_width", "lidar_columns", "max_hits", "min_transmittance",
                 "samples", "sky_patterns", "pixel_grid", "bounces", "shadowing", "diffuse_fresnel", "rgb_space", "weights", "bilateral_sigma", "slic_size", "lr_scale", "densify_every",
-                "densify_until", "prune_opacity", "densify_grad", "densify_fraction", "split_scale",
+                "densify_until", "anneal_from", "anneal_end", "prune_opacity", "densify_grad",
+                "densify_fraction", "densify_screen", "split_scale",
                 "max_gaussians", "stage1_range", "stage1_drop", "stage1_sky", "seed", "fit_response",
                 "sun_candidates", "sun_gaussians", "per_frame_visibility", "learn_sun_direction",
                 "prune_sky_lookalikes", "sky_mask", "sun_visibility", "validation_every",
@@ -99,9 +101,19 @@ class FitConfig:
     lr_scale: float = 1.0
     densify_every: int = 50
     densify_until: float = 0.7
+    #: A budgeted stage 1's learning rates other than the positions' keep
+    #: their start up to this fraction of the stage, then fall exponentially
+    #: to ``anneal_end`` of it at the end (:func:`.budget.anneal_lr_factor`).
+    anneal_from: float = ANNEAL_FROM
+    anneal_end: float = ANNEAL_END
     prune_opacity: float = 0.02
     densify_grad: float = 1e-7
     densify_fraction: float = 0.02
+    #: Rank Gaussians for densification by their positional gradient times
+    #: their distance from the step's camera (about the gradient in image
+    #: space, as 3D Gaussian Splatting ranks them) instead of the gradient in
+    #: metres, which favours the Gaussians nearest the cameras.
+    densify_screen: bool = False
     #: Densification splits a growing Gaussian larger than this (metres,
     #: largest axis) in two and clones a smaller one. 0: every growing
     #: Gaussian is split. Clones hurt on the street: with the split size at

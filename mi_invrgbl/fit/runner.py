@@ -254,7 +254,8 @@ def stage1_schedule(state: FitState, s1, progress_at):
         progress = progress_at(it, total)
         s1.after_step(it, total, progress)
         s1.opt.scale_learning_rates(position_lr_factor(progress), moves_with_positions)
-        s1.opt.scale_learning_rates(anneal_lr_factor(progress),
+        cfg = state.config
+        s1.opt.scale_learning_rates(anneal_lr_factor(progress, cfg.anneal_from, cfg.anneal_end),
                                     lambda v: not moves_with_positions(v))
         state.selection.setdefault("budget", {}).setdefault("stage 1", {})["progress"] = \
             round(progress, 5)

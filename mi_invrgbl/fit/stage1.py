@@ -26,6 +26,7 @@ import mitsuba as mi
 
 from . import losses
 from .budget import stage_progress
+from .model import as_rigid
 from ..physics.fields import BY_NAME, GEOMETRY
 from ..physics.gaussian_ply import GaussianCloud
 from .render import camera_unlit, lidar_beams
@@ -54,6 +55,7 @@ class Stage1:
         self.model = ctx.model
         self.rng = ctx.rng
         self.grad_accum = {}
+        self._view_origin = None  # the step camera's position, for densify_screen
         self.build_optimizer()
         self.batch_camera = cfg.batch_rays
         self.batch_lidar = cfg.lidar_batch_rays
@@ -151,6 +153,7 @@ class Stage1:
         frame = ctx.train_frames[self.rng.integers(0, len(ctx.train_frames))]
         self.pull()
         self.model.push(self.frame_poses(frame), stage=1)
+        self._view_origin = _camera_origin(frame) if self.ctx.config.densify_screen else None
         terms = self.loss_terms(frame)
         total = mi.Float(0.0)
         for v in terms.values():
@@ -185,6 +188,13 @@ class Stage1:
                 continue
             idx = dr.arange(mi.UInt32, node.count) * 3
             norm = dr.sqrt(sum(dr.square(dr.gather(mi.Float, g, idx + k)) for k in range(3)))
+            origin = self._view_origin
+            if origin is not None:
+                # Metres to image space: a shift of x metres at distance d
+                # moves the Gaussian's image by about f x / d pixels, so the
+                # image-space gradient is the metric one times d / f (f is
+                # the same for every Gaussian and left out).
+                norm = norm * _distance_to(self.model, name, node, origin)
             acc = self.grad_accum.get(name)
             if acc is None or dr.width(acc[0]) != node.count:
                 acc = [dr.zeros(mi.Float, node.count), dr.zeros(mi.Float, node.count)]
@@ -284,6 +294,25 @@ class Stage1:
         self.grad_accum = {}
         self.opt = self.opt.rebuild(self.variables(), parents, fresh)
         return report
+
+
+def _camera_origin(frame):
+    """The step's camera position (world), or None for a frame without images."""
+    if frame.camera is None:
+        return None
+    o = frame.camera.sensor.world_transform().translation()
+    return mi.Point3f(o)
+
+
+def _distance_to(model, name, node, origin):
+    """Each Gaussian's distance from ``origin`` where the model is placed now
+    (detached; moving objects at their pose of the step)."""
+    c = dr.detach(node.vec("center"))
+    pose = (model.placed or {}).get(name)
+    if pose is not None and node.dynamic:
+        pose = as_rigid(pose)
+        c = dr.detach(pose.rotation) @ c + dr.detach(pose.translation)
+    return dr.norm(c - origin)
 
 
 def _rotation(q_wxyz):
