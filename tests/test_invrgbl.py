@@ -447,6 +447,8 @@ def test_fresnel_transmission_matches_the_textbook_and_stays_finite():
     t = np.array(brdf.fresnel_transmission(mi.Float(cos), 0.04))
     np.testing.assert_allclose(t, 1.0 - fresnel_np(cos), atol=2e-6)
     assert t[0] == 0.0 and abs(t[-1] - 0.96) < 1e-6 and np.all(np.diff(t) > 0)
+    # Two-sided: seen or lit from behind, the same transmission.
+    np.testing.assert_array_equal(np.array(brdf.fresnel_transmission(mi.Float(-cos), 0.04)), t)
     x = mi.Float(cos)
     dr.enable_grad(x)
     dr.backward(brdf.fresnel_transmission(x, 0.04))

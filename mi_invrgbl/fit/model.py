@@ -124,16 +124,22 @@ class GaussianModel:
         return sum(n.count for n in self.nodes.values())
 
     # ------------------------------------------------------- world arrays
+    def world_centers(self, node: Node, pose=None):
+        """Differentiable world-frame centres of a node at ``pose`` (node -> world)."""
+        c = node.vec("center")
+        if pose is not None and node.dynamic:
+            pose = as_rigid(pose)
+            c = pose.rotation @ c + pose.translation
+        return c
+
     def world_geometry(self, node: Node, pose=None):
         """Differentiable (data, opacities) of a node at ``pose`` (node -> world)."""
-        c = node.vec("center")
+        c = self.world_centers(node, pose)
         q = node.vec("rotation")
         q = mi.Quaternion4f(q.x, q.y, q.z, q.w)
         q = q * dr.rsqrt(dr.maximum(dr.squared_norm(q), 1e-20))
         if pose is not None and node.dynamic:
-            pose = as_rigid(pose)
-            c = pose.rotation @ c + pose.translation
-            q = pose.quaternion * q
+            q = as_rigid(pose).quaternion * q
         s = dr.exp(node.vec("log_scale"))
         # Same thickening as the shape plugin: flatter Gaussians lose rays.
         smax = dr.maximum(dr.maximum(s.x, s.y), s.z)

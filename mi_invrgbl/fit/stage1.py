@@ -26,7 +26,6 @@ import mitsuba as mi
 
 from . import losses
 from .budget import stage_progress
-from .model import as_rigid
 from ..physics.fields import BY_NAME, GEOMETRY
 from ..physics.gaussian_ply import GaussianCloud
 from .render import camera_unlit, lidar_beams
@@ -307,12 +306,9 @@ def _camera_origin(frame):
 def _distance_to(model, name, node, origin):
     """Each Gaussian's distance from ``origin`` where the model is placed now
     (detached; moving objects at their pose of the step)."""
-    c = dr.detach(node.vec("center"))
-    pose = (model.placed or {}).get(name)
-    if pose is not None and node.dynamic:
-        pose = as_rigid(pose)
-        c = dr.detach(pose.rotation) @ c + dr.detach(pose.translation)
-    return dr.norm(c - origin)
+    with dr.suspend_grad():
+        c = model.world_centers(node, (model.placed or {}).get(name))
+        return dr.norm(c - origin)
 
 
 def _rotation(q_wxyz):

@@ -583,8 +583,8 @@ class Stage2:
                     acc[:, k] += np.bincount(gi, w * c[:, k], minlength=acc.shape[0])
                 if transmission:
                     _, d = hitlib.expand_rays(f.camera.rays, fh)
-                    t = np.array(brdf.fresnel_transmission(dr.abs(dr.dot(n, d)),
-                                                                 lighting.f0), np.float64)
+                    t = np.array(brdf.fresnel_transmission(dr.dot(n, d), lighting.f0),
+                                 np.float64)
                     tsum += np.bincount(gi, w * t, minlength=tsum.shape[0])
         seen = wsum > 1e-6
         spec = np.where(seen[:, None], acc / np.maximum(wsum, 1e-6)[:, None], 0.0)

@@ -141,8 +141,11 @@ def fresnel_transmission(cos_theta, f0=F0_DEFAULT):
     way in and on the way out, as Mitsuba's ``plastic`` and ``roughplastic``
     model it; the paper's Lambertian lobe has neither factor. Seen along a
     street, the road is viewed about 80 degrees from its normal, where the
-    way-out factor alone is about 0.5 (IOR 1.5)."""
-    c = dr.clip(cos_theta, 0.0, 1.0)
+    way-out factor alone is about 0.5 (IOR 1.5).
+
+    Two-sided: ``|cos_theta|`` is used, since the Lambertian term it weights
+    is lit and seen from either side of a Gaussian."""
+    c = dr.clip(dr.abs(cos_theta), 0.0, 1.0)
     f, _, _, _ = mi.fresnel(c, ior_from_f0(f0))
     return dr.clip(1.0 - f, 0.0, 1.0)
 

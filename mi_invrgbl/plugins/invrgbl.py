@@ -172,10 +172,10 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
             specular += li * brdf.specular(wi, wo, tau, self.f0, self.shadowing) * (dr.pi / M)
         if lighting.diffuse_fresnel:
             # Diffuse light leaves through the coat too (the way in is in
-            # the lighting's diffuse term). |cos|: the diffuse term is lit
-            # whichever side the viewer is on, so the coat is two-sided.
+            # the lighting's diffuse term); the transmission is two-sided,
+            # as the diffuse term is lit whichever side the viewer is on.
             irradiance_pi = irradiance_pi * brdf.fresnel_transmission(
-                dr.abs(mi.Frame3f.cos_theta(wo)), lighting.f0)
+                mi.Frame3f.cos_theta(wo), lighting.f0)
         colour = albedo * irradiance_pi + specular
         colour = dr.select(active & dr.all(dr.isfinite(colour)), colour, 0.0)
         return colour, albedo, n, tau, rho_l
