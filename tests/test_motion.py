@@ -31,8 +31,9 @@ def _slab(o, d, lo, hi):
     return np.where((tf >= tn) & (tn > 0), tn, np.inf)
 
 
-def _sweep(frame, with_box=True):
-    """Sensor-frame points of one sweep (the sensor is axis-aligned)."""
+def _sweep(frame, with_box=True, centre=None):
+    """Sensor-frame points of one sweep (the sensor is axis-aligned); the
+    box at ``centre`` (default: where it drives to by ``frame``)."""
     origin = np.array([EGO_STEP * frame, 0.0, SENSOR_Z])
     d = _rays()
     o = np.broadcast_to(origin, d.shape)
@@ -48,7 +49,7 @@ def _sweep(frame, with_box=True):
     for cx in (15.0, 30.0):
         t = np.minimum(t, _slab(o, d, np.array([cx - 0.3, -5.3, 0]), np.array([cx + 0.3, -4.7, 3])))
     if with_box:
-        c = BOX_START + np.array([BOX_STEP * frame, 0, 0])
+        c = BOX_START + np.array([BOX_STEP * frame, 0, 0]) if centre is None else centre
         t = np.minimum(t, _slab(o, d, c - BOX_HALF, c + BOX_HALF))
     ok = np.isfinite(t) & (t < 80)
     return d[ok] * t[ok, None]
@@ -250,3 +251,118 @@ def test_a_queue_of_vehicles_is_split_into_vehicle_sized_candidates():
     # Too many moving points for a standing vehicle: a moving one's cluster.
     seeds[np.nonzero(on)[0][:: 2]] = True
     assert motion.standing_candidates(0, w, idx, seeds, opts) == []
+
+
+# ---------------------------------------------------------------- vehicles that stop
+STOP_FRAME = 6           # the box drives BOX_STEP a sweep up to here, then stands
+
+
+def _stop_centre(frame):
+    return BOX_START + np.array([BOX_STEP * min(frame, STOP_FRAME), 0, 0])
+
+
+def _sweep_box_at(frame, centre):
+    """A sweep of the drive with the moving box at ``centre`` (None: no box)."""
+    return _sweep(frame, with_box=centre is not None, centre=centre)
+
+
+def test_a_vehicle_that_stops_stays_its_node(monkeypatch):
+    """The free-space test sees the box only while it drives; the node
+    follows it by registration over the sweeps where it stands."""
+    scans = [_sweep_box_at(i, _stop_centre(i)) for i in range(N_FRAMES)]
+    poses = _poses()
+    res = motion.detect_motion(scans, poses)
+    assert len(res.objects) == 1
+    obj = res.objects[0]
+    lab = np.nonzero(obj.labelled)[0]
+    assert lab[-1] == N_FRAMES - 1 and res.stats["followed_sweeps"] > 0
+    # Standing: the node's centre keeps still (the truth does) within 0.1 m
+    # over every sweep after the stop, and is where the moving part put it.
+    after = np.arange(STOP_FRAME + 1, N_FRAMES)
+    t = obj.poses[after, :3, 3]
+    assert np.linalg.norm(t[:, :2] - t[0, :2], axis=1).max() < 0.1
+    c0 = obj.poses[lab[0], :2, 3] - _stop_centre(lab[0])[:2]      # the node's offset in its box
+    assert np.linalg.norm(t[:, :2] - (_stop_centre(N_FRAMES - 1)[:2] + c0), axis=1).max() < 0.15
+    # The node's box holds the standing box's points in every sweep after
+    # the stop (the import gives the node the points its box holds), and
+    # none of them is masked.
+    from mi_invrgbl.io.objects import in_box
+    for i in after:
+        world = scans[i] + poses[i, :3, 3]
+        on = _on_stopped(world, i) & (world[:, 2] > 0.2)
+        local = world[on] @ obj.poses[i, :3, :3] - obj.poses[i, :3, 3] @ obj.poses[i, :3, :3]
+        assert in_box(local, obj.half_extent).mean() > 0.95
+        assert not res.masked[i][on].any()
+    # Without following, the track ends where its moving points do, and the
+    # extrapolated pose drives on through the standing box.
+    monkeypatch.setattr(motion, "follow_node", lambda *a, **k: [])
+    plain = motion.detect_motion(scans, poses).objects[0]
+    last = np.nonzero(plain.labelled)[0][-1]
+    assert last < N_FRAMES - 1
+    assert plain.poses[N_FRAMES - 1, 0, 3] - plain.poses[last, 0, 3] > 0.5 * (N_FRAMES - 1 - last)
+
+
+def _on_stopped(points_world, frame):
+    return np.all(np.abs(points_world - _stop_centre(frame)) <= BOX_HALF + 0.05, axis=1)
+
+
+def test_a_vehicle_that_leaves_is_not_followed_into_the_background():
+    """The box drives, then is gone (out of the scene): following stops at
+    the first sweep without it, and claims no wall, pillar or road."""
+    gone = STOP_FRAME + 2
+    scans = [_sweep_box_at(i, BOX_START + [BOX_STEP * i, 0, 0] if i < gone else None)
+             for i in range(N_FRAMES)]
+    poses = _poses()
+    res = motion.detect_motion(scans, poses)
+    assert len(res.objects) == 1
+    lab = np.nonzero(res.objects[0].labelled)[0]
+    assert lab[-1] < gone
+
+
+def test_boxes_overlap_is_the_separating_axis_test_on_the_footprints():
+    def pose(x, y, yaw_deg):
+        T = np.eye(4)
+        c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+        T[:2, :2] = [[c, -s], [s, c]]
+        T[:2, 3] = x, y
+        return T
+    half = np.array([2.0, 1.0, 0.8])
+    assert motion.boxes_overlap(pose(0, 0, 0), half, pose(3.9, 0, 0), half)
+    assert not motion.boxes_overlap(pose(0, 0, 0), half, pose(4.1, 0, 0), half)
+    assert not motion.boxes_overlap(pose(0, 0, 0), half, pose(0, 2.1, 0), half)
+    # Turned 45 degrees, the corner reaches 2.12 m along the other's y: the
+    # centres' distance on the axes alone would call 2.5 m apart separate.
+    assert motion.boxes_overlap(pose(0, 0, 0), half, pose(0, 2.9, 45), half)
+    assert not motion.boxes_overlap(pose(0, 0, 0), half, pose(0, 3.2, 45), half)
+    # Height plays no part; the test is symmetric.
+    a, b = pose(0, 0, 30), pose(2.5, 1.5, -60)
+    assert motion.boxes_overlap(a, half, b, half) == motion.boxes_overlap(b, half, a, half)
+
+
+def test_following_stops_at_another_nodes_box(monkeypatch):
+    """Where another node holds the standing box (two tracks of one vehicle),
+    the following stops at the first sweep in which their boxes overlap."""
+    scans = [_sweep_box_at(i, _stop_centre(i)) for i in range(N_FRAMES)]
+    poses = _poses()
+    monkeypatch.setattr(motion, "follow_node", lambda *a, **k: [])
+    res = motion.detect_motion(scans, poses)
+    monkeypatch.undo()
+    track = next(t for t, ok in zip(res.tracks, res.modelled) if ok)
+    opts = motion.MotionOptions()
+    sweeps = []
+    for s, P in zip(scans, poses):
+        idx = np.nonzero(motion.above_ground(s, opts))[0]
+        sweeps.append((s[idx] + P[:3, 3], idx))
+    blocker_from = STOP_FRAME + 4
+    blocker = motion.ObjectTrack(
+        name="object_9", track_id=9, kind="moving", size_hwl=res.objects[0].size_hwl,
+        poses=np.tile(np.eye(4), (N_FRAMES, 1, 1)),
+        labelled=np.arange(N_FRAMES) >= blocker_from, displacement_m=0.0, moving=True, dynamic=True)
+    blocker.poses[:, :3, 3] = _stop_centre(N_FRAMES)
+    import copy
+    alone = copy.deepcopy(res.objects[0])
+    assert motion.follow_node(copy.deepcopy(track), alone, sweeps, opts)[-1] == N_FRAMES - 1
+    obj = copy.deepcopy(res.objects[0])
+    got = motion.follow_node(copy.deepcopy(track), obj, sweeps, opts, others=[blocker])
+    assert got and got[-1] == blocker_from - 1
+    assert not obj.labelled[blocker_from:].any()
