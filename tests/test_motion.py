@@ -366,3 +366,30 @@ def test_following_stops_at_another_nodes_box(monkeypatch):
     got = motion.follow_node(copy.deepcopy(track), obj, sweeps, opts, others=[blocker])
     assert got and got[-1] == blocker_from - 1
     assert not obj.labelled[blocker_from:].any()
+
+
+def test_following_runs_backwards_at_the_tracks_velocity(monkeypatch):
+    """The free-space test misses the driving box in its first sweeps: the
+    node is followed back to the first sweep, BOX_STEP a sweep, as the
+    track moved."""
+    late = 5
+    real = motion.dynamic_points
+
+    def blind_at_first(scans, poses, opts=None):
+        out = real(scans, poses, opts)
+        return [np.zeros_like(d) if i < late else d for i, d in enumerate(out)]
+
+    monkeypatch.setattr(motion, "dynamic_points", blind_at_first)
+    scans = [_sweep(i) for i in range(N_FRAMES)]
+    poses = _poses()
+    res = motion.detect_motion(scans, poses)
+    assert len(res.objects) == 1
+    obj = res.objects[0]
+    lab = np.nonzero(obj.labelled)[0]
+    assert lab[0] == 0
+    steps = np.diff(obj.poses[: late + 2, 0, 3])
+    assert np.allclose(steps, BOX_STEP, atol=0.1), steps
+    assert np.abs(np.diff(obj.poses[: late + 2, 1, 3])).max() < 0.1
+    # Without following the track starts at the first sweep it saw moving.
+    monkeypatch.setattr(motion, "follow_node", lambda *a, **k: [])
+    assert np.nonzero(motion.detect_motion(scans, poses).objects[0].labelled)[0][0] >= late
