@@ -548,6 +548,27 @@ def test_densify_screen_ranks_by_the_gradient_times_the_distance(scene_path, tmp
     assert distance.min() > 0.5 and distance.max() > 2 * distance.min()   # the ranking changes
 
 
+def test_densify_screen_ranks_in_metres_on_a_frame_without_images(scene_path, tmp_path):
+    # A LiDAR-only frame has no camera to measure pixels from: the step's
+    # accumulation is the metric one, with or without densify_screen.
+    import copy
+    from mi_invrgbl.fit.init import load_state
+    from mi_invrgbl.fit.stage1 import Stage1
+    acc = {}
+    for screen in (False, True):
+        state = load_state(scene_path, small_config(tmp_path, densify_screen=screen),
+                           log=lambda *a: None)
+        s1 = Stage1(state)
+        pick = copy.deepcopy(s1.rng).integers(0, len(state.train_frames))
+        state.train_frames[pick].camera = None
+        s1.iteration(1)
+        assert s1._view_origin is None
+        acc[screen] = np.array(s1.grad_accum["background"][0], np.float64)
+    seen = acc[False] > 1e-12
+    assert seen.sum() > 50, seen.sum()
+    assert np.allclose(acc[True], acc[False], rtol=1e-5, atol=0)
+
+
 def test_step_with_finite_loss_but_infinite_gradient_is_rolled_back():
     # sqrt at 0: the loss is 0, its gradient infinite. One read-back checks
     # both; the step is skipped, learning rates halved, the value kept.

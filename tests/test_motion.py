@@ -393,3 +393,31 @@ def test_following_runs_backwards_at_the_tracks_velocity(monkeypatch):
     # Without following the track starts at the first sweep it saw moving.
     monkeypatch.setattr(motion, "follow_node", lambda *a, **k: [])
     assert np.nonzero(motion.detect_motion(scans, poses).objects[0].labelled)[0][0] >= late
+
+
+def test_a_handover_links_two_tracks_of_one_vehicle():
+    """A node whose following stopped at another node's box moves with it
+    beyond that sweep, and the other moves with it before its own poses:
+    at the offset they had at the handover, whatever their extrapolations
+    said (here the second track's ran sideways)."""
+    n, g = 10, 5
+    def track(first, last, x0, vy_before=0.0):
+        poses = np.tile(np.eye(4), (n, 1, 1))
+        poses[:, 0, 3] = x0 + np.arange(n)                 # 1 m a sweep along x
+        poses[:first, 1, 3] = vy_before * (first - np.arange(first))
+        labelled = (np.arange(n) >= first) & (np.arange(n) <= last)
+        return motion.ObjectTrack(name="object_%d" % first, track_id=first, kind="moving",
+                                  size_hwl=np.array([1.5, 1.8, 2.0]), poses=poses,
+                                  labelled=labelled, displacement_m=4.0, moving=True, dynamic=True)
+    a = track(0, g - 1, 0.0)
+    b = track(g, n - 1, 0.5, vy_before=0.8)            # extrapolated back into the next lane
+    a.poses[g:, 0, 3] += 3.0                            # and a's forward, too far
+    a_own, b_own = a.poses[:g].copy(), b.poses[g:].copy()
+    motion.link_handovers(a, {1: (b, g)})
+    # Their own poses are kept...
+    assert np.array_equal(a.poses[:g], a_own) and np.array_equal(b.poses[g:], b_own)
+    # ...and outside them each moves with the other at the handover's offset.
+    rel = np.stack([np.linalg.inv(b.poses[k]) @ a.poses[k] for k in range(n)])
+    assert np.allclose(rel, rel[g], atol=1e-9)
+    assert abs(rel[g][0, 3] - (-0.5 + 3.0)) < 1e-9      # a's pose one past its last, against b's first
+    assert np.abs(b.poses[:g, 1, 3]).max() < 1e-9        # no longer in the next lane
