@@ -255,6 +255,7 @@ def test_a_queue_of_vehicles_is_split_into_vehicle_sized_candidates():
 
 # ---------------------------------------------------------------- vehicles that stop
 STOP_FRAME = 6           # the box drives BOX_STEP a sweep up to here, then stands
+FOLLOW = motion.MotionOptions(follow=True)      # import --follow-nodes
 
 
 def _stop_centre(frame):
@@ -271,7 +272,7 @@ def test_a_vehicle_that_stops_stays_its_node(monkeypatch):
     follows it by registration over the sweeps where it stands."""
     scans = [_sweep_box_at(i, _stop_centre(i)) for i in range(N_FRAMES)]
     poses = _poses()
-    res = motion.detect_motion(scans, poses)
+    res = motion.detect_motion(scans, poses, FOLLOW)
     assert len(res.objects) == 1
     obj = res.objects[0]
     lab = np.nonzero(obj.labelled)[0]
@@ -295,6 +296,8 @@ def test_a_vehicle_that_stops_stays_its_node(monkeypatch):
         assert not res.masked[i][on].any()
     # Without following, the track ends where its moving points do, and the
     # extrapolated pose drives on through the standing box.
+    # (Following is off by default: import --follow-nodes.)
+    assert motion.detect_motion(scans, poses).stats["followed_sweeps"] == 0
     monkeypatch.setattr(motion, "follow_node", lambda *a, **k: [])
     plain = motion.detect_motion(scans, poses).objects[0]
     last = np.nonzero(plain.labelled)[0][-1]
@@ -313,7 +316,7 @@ def test_a_vehicle_that_leaves_is_not_followed_into_the_background():
     scans = [_sweep_box_at(i, BOX_START + [BOX_STEP * i, 0, 0] if i < gone else None)
              for i in range(N_FRAMES)]
     poses = _poses()
-    res = motion.detect_motion(scans, poses)
+    res = motion.detect_motion(scans, poses, FOLLOW)
     assert len(res.objects) == 1
     lab = np.nonzero(res.objects[0].labelled)[0]
     assert lab[-1] < gone
@@ -348,7 +351,7 @@ def test_following_stops_at_another_nodes_box(monkeypatch):
     res = motion.detect_motion(scans, poses)
     monkeypatch.undo()
     track = next(t for t, ok in zip(res.tracks, res.modelled) if ok)
-    opts = motion.MotionOptions()
+    opts = FOLLOW
     sweeps = []
     for s, P in zip(scans, poses):
         idx = np.nonzero(motion.above_ground(s, opts))[0]
@@ -382,7 +385,7 @@ def test_following_runs_backwards_at_the_tracks_velocity(monkeypatch):
     monkeypatch.setattr(motion, "dynamic_points", blind_at_first)
     scans = [_sweep(i) for i in range(N_FRAMES)]
     poses = _poses()
-    res = motion.detect_motion(scans, poses)
+    res = motion.detect_motion(scans, poses, FOLLOW)
     assert len(res.objects) == 1
     obj = res.objects[0]
     lab = np.nonzero(obj.labelled)[0]
@@ -393,31 +396,3 @@ def test_following_runs_backwards_at_the_tracks_velocity(monkeypatch):
     # Without following the track starts at the first sweep it saw moving.
     monkeypatch.setattr(motion, "follow_node", lambda *a, **k: [])
     assert np.nonzero(motion.detect_motion(scans, poses).objects[0].labelled)[0][0] >= late
-
-
-def test_a_handover_links_two_tracks_of_one_vehicle():
-    """A node whose following stopped at another node's box moves with it
-    beyond that sweep, and the other moves with it before its own poses:
-    at the offset they had at the handover, whatever their extrapolations
-    said (here the second track's ran sideways)."""
-    n, g = 10, 5
-    def track(first, last, x0, vy_before=0.0):
-        poses = np.tile(np.eye(4), (n, 1, 1))
-        poses[:, 0, 3] = x0 + np.arange(n)                 # 1 m a sweep along x
-        poses[:first, 1, 3] = vy_before * (first - np.arange(first))
-        labelled = (np.arange(n) >= first) & (np.arange(n) <= last)
-        return motion.ObjectTrack(name="object_%d" % first, track_id=first, kind="moving",
-                                  size_hwl=np.array([1.5, 1.8, 2.0]), poses=poses,
-                                  labelled=labelled, displacement_m=4.0, moving=True, dynamic=True)
-    a = track(0, g - 1, 0.0)
-    b = track(g, n - 1, 0.5, vy_before=0.8)            # extrapolated back into the next lane
-    a.poses[g:, 0, 3] += 3.0                            # and a's forward, too far
-    a_own, b_own = a.poses[:g].copy(), b.poses[g:].copy()
-    motion.link_handovers(a, {1: (b, g)})
-    # Their own poses are kept...
-    assert np.array_equal(a.poses[:g], a_own) and np.array_equal(b.poses[g:], b_own)
-    # ...and outside them each moves with the other at the handover's offset.
-    rel = np.stack([np.linalg.inv(b.poses[k]) @ a.poses[k] for k in range(n)])
-    assert np.allclose(rel, rel[g], atol=1e-9)
-    assert abs(rel[g][0, 3] - (-0.5 + 3.0)) < 1e-9      # a's pose one past its last, against b's first
-    assert np.abs(b.poses[:g, 1, 3]).max() < 1e-9        # no longer in the next lane

@@ -61,6 +61,10 @@ def add_parser(subparsers):
     p.add_argument("--no-motion", dest="motion", action="store_false",
                    help="on drives without tracking labels, do not look for moving objects "
                         "in the LiDAR sweeps (rigid nodes, or masks the fit leaves out)")
+    p.add_argument("--follow-nodes", action="store_true",
+                   help="follow each moving object found in the LiDAR past its track, by "
+                        "registering its points to the sweeps before and after (a vehicle that "
+                        "stops or starts); off by default")
     p.add_argument("--extend-walls", type=float, default=d.extend_walls,
                    help="extend facades cut by the LiDAR's top beam upward by this many metres, "
                         "so the cameras' view above the LiDAR has Gaussians (default %(default)s; 0: off)")
@@ -87,7 +91,7 @@ def options_from_args(args):
         intensity=args.intensity, beams=args.beams, sky_order=args.sky_order,
         extend_walls=args.extend_walls, object_headroom=args.object_headroom,
         triangulate=args.triangulate,
-        motion=args.motion,
+        motion=args.motion, follow_nodes=args.follow_nodes,
         check_odometry=args.check_odometry, overwrite=args.overwrite,
         verify=not args.no_verify)
 

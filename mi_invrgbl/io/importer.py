@@ -105,6 +105,7 @@ class ImportOptions:
     object_headroom: float = OBJECT_HEADROOM  # metres above a cut object's top (0: off)
     triangulate: bool = True           # camera-only geometry (io/triangulate.py)
     motion: bool = True                # moving objects from the LiDAR when unlabelled (io/motion.py)
+    follow_nodes: bool = False         # follow those nodes past their tracks (motion.follow_node)
     overwrite: bool = False
     verify: bool = True
 
