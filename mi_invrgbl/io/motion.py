@@ -69,7 +69,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import init_gaussians as ig
-from .objects import ObjectTrack, fill_poses
+from .objects import ObjectTrack, fill_poses, in_box
 
 
 #: a cluster grown around moving points must be at least this share moving
@@ -531,8 +531,6 @@ def follow_node(track: MotionTrack, obj: ObjectTrack, sweeps, opts: MotionOption
     labelled in: on the KITTI excerpt the truck ahead was two tracks, 17
     and 8 sweeps long, and each, followed through the other's, drew the
     truck twice."""
-    from .objects import in_box
-
     n = len(sweeps)
     if not track.clusters:
         return []
@@ -551,7 +549,7 @@ def follow_node(track: MotionTrack, obj: ObjectTrack, sweeps, opts: MotionOption
         while 0 <= f + step < n:
             g = f + step
             world, index = sweeps[g]
-            found = _register_box(world, model, half, known, f, step, need, opts, in_box)
+            found = _register_box(world, model, half, known, f, step, need, opts)
             if found is None:
                 break
             if any(o.labelled[g] and boxes_overlap(found[0], half, o.poses[g], o.half_extent)
@@ -597,7 +595,7 @@ def boxes_overlap(pose_a, half_a, pose_b, half_b) -> bool:
     return True
 
 
-def _register_box(world, model, half, known, f, step, need, opts, in_box):
+def _register_box(world, model, half, known, f, step, need, opts):
     """One step of :func:`follow_node`: the node's pose in the sweep after
     (``step`` 1) or before (-1) frame ``f``, with the points its box holds
     there, or None."""
