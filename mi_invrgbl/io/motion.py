@@ -142,10 +142,11 @@ class MotionOptions:
     min_travel: float = 0.5
     track_id_base: int = 1000
     #: follow each node past its track by registration (:func:`follow_node`;
-    #: ``import --follow-nodes``). Off by default: on the KITTI excerpt it
-    #: lifted stage 1 at 800 steps (21.13 against 20.94 dB on the validation
-    #: frames) but not a 30-minute fit (21.70 against 21.81 dB by ``eval``;
-    #: one run each, README "Nodes followed past their tracks").
+    #: ``import --follow-nodes``). Off by default: on the KITTI excerpt
+    #: neither stage 1 at 800 steps (21.13 and 20.95 dB on the validation
+    #: frames against 20.94 and 21.01) nor a 30-minute fit (21.70 against
+    #: 21.81 dB by ``eval``, one run each) scored better with it (README
+    #: "Nodes followed past their tracks").
     follow: bool = False
 
 
