@@ -262,15 +262,10 @@ def _stop_centre(frame):
     return BOX_START + np.array([BOX_STEP * min(frame, STOP_FRAME), 0, 0])
 
 
-def _sweep_box_at(frame, centre):
-    """A sweep of the drive with the moving box at ``centre`` (None: no box)."""
-    return _sweep(frame, with_box=centre is not None, centre=centre)
-
-
 def test_a_vehicle_that_stops_stays_its_node(monkeypatch):
     """The free-space test sees the box only while it drives; the node
     follows it by registration over the sweeps where it stands."""
-    scans = [_sweep_box_at(i, _stop_centre(i)) for i in range(N_FRAMES)]
+    scans = [_sweep(i, centre=_stop_centre(i)) for i in range(N_FRAMES)]
     poses = _poses()
     res = motion.detect_motion(scans, poses, FOLLOW)
     assert len(res.objects) == 1
@@ -313,7 +308,7 @@ def test_a_vehicle_that_leaves_is_not_followed_into_the_background():
     """The box drives, then is gone (out of the scene): following stops at
     the first sweep without it, and claims no wall, pillar or road."""
     gone = STOP_FRAME + 2
-    scans = [_sweep_box_at(i, BOX_START + [BOX_STEP * i, 0, 0] if i < gone else None)
+    scans = [_sweep(i, with_box=i < gone)
              for i in range(N_FRAMES)]
     poses = _poses()
     res = motion.detect_motion(scans, poses, FOLLOW)
@@ -345,7 +340,7 @@ def test_boxes_overlap_is_the_separating_axis_test_on_the_footprints():
 def test_following_stops_at_another_nodes_box(monkeypatch):
     """Where another node holds the standing box (two tracks of one vehicle),
     the following stops at the first sweep in which their boxes overlap."""
-    scans = [_sweep_box_at(i, _stop_centre(i)) for i in range(N_FRAMES)]
+    scans = [_sweep(i, centre=_stop_centre(i)) for i in range(N_FRAMES)]
     poses = _poses()
     monkeypatch.setattr(motion, "follow_node", lambda *a, **k: [])
     res = motion.detect_motion(scans, poses)

@@ -693,9 +693,8 @@ def detect_motion(scans, poses, opts: MotionOptions | None = None, log=None) -> 
             node_tracks.append(tr)
     # Longest tracks first: where two tracks hold parts of one vehicle, the
     # one seen longer follows it, and the other's following stops at its box.
-    for k in sorted(range(len(objects)), key=lambda k: -len(node_tracks[k].clusters)):
-        if not opts.follow:
-            break
+    order = sorted(range(len(objects)), key=lambda k: -len(node_tracks[k].clusters))
+    for k in order if opts.follow else []:
         followed = follow_node(node_tracks[k], objects[k], sweeps, opts,
                                others=objects[:k] + objects[k + 1:])
         if followed:
