@@ -391,3 +391,24 @@ def test_following_runs_backwards_at_the_tracks_velocity(monkeypatch):
     # Without following the track starts at the first sweep it saw moving.
     monkeypatch.setattr(motion, "follow_node", lambda *a, **k: [])
     assert np.nonzero(motion.detect_motion(scans, poses).objects[0].labelled)[0][0] >= late
+
+
+def test_following_stops_at_an_empty_sweep(monkeypatch):
+    """A sweep with no points above the ground (a dropped sweep) ends the
+    following there: no pose is made up for it or past it."""
+    scans = [_sweep(i, centre=_stop_centre(i)) for i in range(N_FRAMES)]
+    poses = _poses()
+    monkeypatch.setattr(motion, "follow_node", lambda *a, **k: [])
+    res = motion.detect_motion(scans, poses)
+    monkeypatch.undo()
+    track = next(t for t, ok in zip(res.tracks, res.modelled) if ok)
+    sweeps = []
+    for s, P in zip(scans, poses):
+        idx = np.nonzero(motion.above_ground(s, FOLLOW))[0]
+        sweeps.append((s[idx] + P[:3, 3], idx))
+    gap = STOP_FRAME + 4
+    sweeps[gap] = (np.zeros((0, 3)), np.zeros(0, np.int64))
+    obj = res.objects[0]
+    got = motion.follow_node(track, obj, sweeps, FOLLOW)
+    assert got and max(got) == gap - 1
+    assert not obj.labelled[gap:].any() and np.all(np.isfinite(obj.poses))
