@@ -28,7 +28,7 @@ from . import losses
 from .budget import stage_progress
 from ..physics.fields import BY_NAME, GEOMETRY
 from ..physics.gaussian_ply import GaussianCloud
-from .render import camera_unlit, lidar_beams
+from .render import batch_order, camera_unlit, lidar_beams
 from .render import gather_rays as _gather_rays
 from .steps import safe_step
 from .object_poses import PARTS as POSE_PARTS
@@ -118,7 +118,7 @@ class Stage1:
         if len(pool) and cfg.weights.rgb > 0:
             cam = frame.camera
             n = len(pool)
-            sel = pool[self.rng.integers(0, n, min(self.batch_camera, n))]
+            sel = batch_order(pool[self.rng.integers(0, n, min(self.batch_camera, n))])
             idx = jit_array(mi.UInt32, sel)
             # Through the pixel centres: rays through a random point of each
             # pixel (the image's box filter in expectation) scored 18.34 dB
@@ -135,7 +135,7 @@ class Stage1:
         if len(pool) and (cfg.stage1_range > 0 or cfg.stage1_drop > 0):
             lid = frame.lidar
             n = len(pool)
-            sel = pool[self.rng.integers(0, n, min(self.batch_lidar, n))]
+            sel = batch_order(pool[self.rng.integers(0, n, min(self.batch_lidar, n))])
             idx = jit_array(mi.UInt32, sel)
             rays = _gather_rays(lid.rays, idx)
             ch = lidar_beams(self.ctx.lidar_integrator, self.ctx.scene, rays,
