@@ -35,7 +35,9 @@ def batch_order(index: np.ndarray) -> np.ndarray:
     Gaussians, so the packet's BVH traversals are coherent and its rays end
     at about the same step. On the KITTI excerpt a 4 096-ray stage-1 render
     took 0.171 s sorted against 0.314 s in draw order (2 cores). The loss
-    is a mean over the batch, so the order changes nothing else."""
+    is a mean over the batch; what a ray renders changes only by rounding
+    (Embree's packet traversal: 0.4 % of a KITTI batch's rays moved by more
+    than 1e-3, none by more than 0.03)."""
     return np.sort(index)
 
 
