@@ -43,7 +43,7 @@ from .budget import (OUTPUT_RESERVE, SUN_TRIAL_STEPS, TIMED, Budget, EarlyStop, 
                      fixed_costs, resumed_plan, resumed_progress)
 from .checkpoint import checkpoint_path, fingerprint, load_checkpoint, save_checkpoint
 from .config import FitConfig  # noqa: F401  (the fit's options, imported from here by callers)
-from .evaluate import score_stage1, score_stage2
+from .evaluate import score_stage2
 from .init import init_materials, init_sky_from_mask, load_state, sh_mask
 from .loop import LOG_SHARE, Interrupted, LogCadence, StageRun, record_point, train
 from .model_selection import (SUN_TRIAL_MARGIN, LightingChoice, LobeChoice, choose_lidar_lobe,
@@ -159,7 +159,7 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
         restore_optimizer(s1.opt.adam, opt_state)
     total = planned(state, "stage 1", config.stage1_iterations)
     run = StageRun("stage 1", s1.iteration,
-                   lambda: (score_stage1(state, state.held_out_frames), float("nan")),
+                   lambda: (s1.score(state.held_out_frames), float("nan")),
                    lambda name, it: checkpoint(name, it, s1.opt.adam), s1.after_step)
     if budget is not None and start == 0:
         record_point(state, run, 0)   # before the timed iterations move it
@@ -240,7 +240,7 @@ def stage1_stop(state: FitState, s1, plan, deadline):
     def resume_from(snapshot, damping):
         s1.restore(snapshot)
         s1.opt.set_damping(damping)
-    return ValidationStop(state, plan, deadline, lambda: score_stage1(state, state.validation_frames),
+    return ValidationStop(state, plan, deadline, lambda: s1.score(state.validation_frames),
                           keep=s1.snapshot, resume_from=resume_from, share=VALIDATION_SHARE)
 
 

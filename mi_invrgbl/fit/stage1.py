@@ -31,7 +31,9 @@ from ..physics.gaussian_ply import GaussianCloud
 from .render import batch_order, camera_unlit, lidar_beams
 from .render import gather_rays as _gather_rays
 from .steps import safe_step
+from .evaluate import score_stage1
 from .object_poses import PARTS as POSE_PARTS
+from .rig_poses import NAME as RIG, PARTS as RIG_PARTS
 from .variables import GaussianVariable, Optimizer, PoseVariable, SkySH
 from ..physics.host_arrays import jit_array
 
@@ -69,18 +71,31 @@ class Stage1:
         if poses:
             out += [PoseVariable(poses, name, part, lr * scale, bound)
                     for name in poses.objects for part, (lr, bound) in POSE_PARTS.items()]
+        rig = self.ctx.rig_poses
+        if rig:
+            out += [PoseVariable(rig, RIG, part, lr * scale, bound)
+                    for part, (lr, bound) in RIG_PARTS.items()]
         return out
 
     def build_optimizer(self):
         self.opt = Optimizer(self.variables())
 
     def pull(self):
-        """Adam's values into the model; every frame's object poses follow
-        the corrections (the validation scores and everything after stage 1
-        read ``frame.poses``)."""
+        """Adam's values into the model; every frame's object poses, sensors
+        and rays follow the corrections (the scores and everything after
+        stage 1 read ``frame.poses`` and the frames' rays). A step needs
+        none of that (it renders with the corrections themselves), so
+        :meth:`iteration` only writes Adam's values."""
         self.opt.pull()
         if self.ctx.object_poses:
             self.ctx.object_poses.bake()
+        if self.ctx.rig_poses:
+            self.ctx.rig_poses.bake()
+
+    def score(self, frames, **kw):
+        """:func:`~.evaluate.score_stage1` of ``frames`` as the stage stands."""
+        self.pull()
+        return score_stage1(self.ctx, frames, **kw)
 
     def frame_poses(self, frame):
         """The poses a training step renders ``frame`` with: differentiable
@@ -92,10 +107,11 @@ class Stage1:
         """The stage's state, Gaussians (their number changes with
         densification), sky and object poses, as host arrays to come back to."""
         self.pull()
-        poses = self.ctx.object_poses
+        poses = {}
+        for fit in (self.ctx.object_poses, self.ctx.rig_poses):
+            poses.update(fit.state_dict() if fit else {})
         return (self.model.state_dict(),
-                np.array(dr.detach(self.ctx.params[self.ctx.sky_key]), np.float32),
-                poses.state_dict() if poses else {})
+                np.array(dr.detach(self.ctx.params[self.ctx.sky_key]), np.float32), poses)
 
     def restore(self, snapshot):
         """Return to a :meth:`snapshot`; Adam starts afresh from it."""
@@ -103,9 +119,10 @@ class Stage1:
         self.model.load_state_dict(model)
         self.ctx.params[self.ctx.sky_key] = jit_array(mi.Float, sky)
         self.ctx.params.update()
-        if self.ctx.object_poses:
-            self.ctx.object_poses.load_state_dict(poses)
-            self.ctx.object_poses.bake()
+        for fit in (self.ctx.object_poses, self.ctx.rig_poses):
+            if fit:
+                fit.load_state_dict(poses)
+                fit.bake()
         self.grad_accum = {}
         self.build_optimizer()
 
@@ -125,7 +142,7 @@ class Stage1:
             # against 18.46 on the KITTI excerpt's validation frames after
             # 600 steps, 18.38 against 18.50 rendered with 2 x 2 rays per
             # pixel as eval does (tests/bench/stage1_steps.py).
-            rays = _gather_rays(cam.rays, idx)
+            rays = self._rays(frame, idx)
             rgb, alpha, _ = camera_unlit(self.ctx.scene, rays, cfg.max_hits, cfg.min_transmittance)
             target = dr.gather(mi.Color3f, self.ctx.image_array(frame), idx)
             terms["rgb"] = losses.rgb_loss(rgb, target, space=cfg.rgb_space)
@@ -137,7 +154,7 @@ class Stage1:
             n = len(pool)
             sel = batch_order(pool[self.rng.integers(0, n, min(self.batch_lidar, n))])
             idx = jit_array(mi.UInt32, sel)
-            rays = _gather_rays(lid.rays, idx)
+            rays = self._rays(frame, idx, lidar=True)
             ch = lidar_beams(self.ctx.lidar_integrator, self.ctx.scene, rays,
                              dr.gather(mi.UInt32, lid.row, idx), dr.gather(mi.Float, lid.near, idx))
             hit = jit_array(mi.Bool, lid.hit.ravel()[sel])
@@ -147,10 +164,18 @@ class Stage1:
             terms["raydrop"] = losses.ray_drop_loss(ch[4], hit) * cfg.stage1_drop
         return terms
 
+    def _rays(self, frame, idx, lidar=False):
+        """The step's camera (or LiDAR) rays ``idx``: along the rig's
+        corrected pose, differentiable in it, where it is fitted."""
+        rig = self.ctx.rig_poses
+        if rig:
+            return rig.rays(frame, idx, lidar)
+        return _gather_rays(frame.lidar.rays if lidar else frame.camera.rays, idx)
+
     def iteration(self, it):
         ctx = self.ctx
         frame = ctx.train_frames[self.rng.integers(0, len(ctx.train_frames))]
-        self.pull()
+        self.opt.pull()
         self.model.push(self.frame_poses(frame), stage=1)
         self._view_origin = _camera_origin(frame) if self.ctx.config.densify_screen else None
         terms = self.loss_terms(frame)

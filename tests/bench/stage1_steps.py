@@ -102,7 +102,7 @@ def main(argv=None):
     s1 = Stage1(state)
     if args.lidar_batch:
         s1.batch_lidar = args.lidar_batch
-    score = lambda: score_stage1(state, state.validation_frames, stride=1)  # noqa: E731
+    score = lambda: s1.score(state.validation_frames, stride=1)  # noqa: E731
     print("step 0: validation PSNR %.2f dB" % score(), flush=True)
     spent = 0.0
     for it in range(1, args.steps + 1):
@@ -134,6 +134,8 @@ def main(argv=None):
                                                             3, -1)], 0))
     if rows:
         cv2.imwrite(args.out, (np.concatenate(rows, 1)[..., ::-1] * 255).astype(np.uint8))
+    if state.rig_poses:
+        print("rig corrections over the training frames: %s" % state.rig_poses.summary())
     print("Gaussians: %d; picture: %s" % (state.model.total, args.out))
 
 
