@@ -268,7 +268,7 @@ def test_frame_view_samples_the_pixel_a_point_projects_to():
                            "film": {"type": "hdrfilm", "width": W, "height": H}})
     image = np.random.default_rng(2).uniform(0, 1, (H, W, 3)).astype(np.float32)
     cam = SimpleNamespace(sensor=sensor, rays=camera_rays(sensor, W, H), image=image, width=W, height=H)
-    view = op.FrameView(SimpleNamespace(camera=cam))
+    view = op._FrameView(SimpleNamespace(camera=cam))
     o = np.stack([np.array(cam.rays.o[k]) for k in range(3)], 1)
     d = np.stack([np.array(cam.rays.d[k]) for k in range(3)], 1)
     pick = np.array([0, 5 * W + 7, 13 * W + 30, H * W - 1])
@@ -277,7 +277,7 @@ def test_frame_view_samples_the_pixel_a_point_projects_to():
     np.testing.assert_allclose(colours, image.reshape(-1, 3)[pick], atol=1e-3)
     _, seen = view.sample(o[pick] - 4.0 * d[pick])          # behind the camera
     assert not seen.any()
-    assert not op.FrameView(SimpleNamespace(camera=None)).sample(o[pick])[1].any()
+    assert not op._FrameView(SimpleNamespace(camera=None)).sample(o[pick])[1].any()
 
 
 def test_fit_outputs_place_objects_at_their_corrected_poses(tiny_scene, tmp_path):
@@ -299,7 +299,7 @@ def test_fit_outputs_place_objects_at_their_corrected_poses(tiny_scene, tmp_path
                           sky_key="sky", sh_order=2, sky_emitter=SimpleNamespace(order=2),
                           use_sun=False, selection={}, sun_visibility_learned=False,
                           config=FitConfig(samples=8),
-                          object_poses=fit, rig_poses=None, frames=frames)
+                          object_poses=fit, frames=frames)
     out = tmp_path / "fit"
     out.mkdir()
     (out / "scene.xml").write_text(fitted_xml(ctx))

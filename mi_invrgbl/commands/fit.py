@@ -90,10 +90,6 @@ FLAGS = (
      "keep the moving objects' poses as imported (default: stage 1 corrects each object's pose "
      "at every training frame from the images and LiDAR; other frames interpolate)",
      {"invert": True}),
-    ("--fixed-rig-poses", "rig_poses",
-     "keep the camera's and LiDAR's poses as imported (default: stage 1 corrects the sensor "
-     "rig's pose at every training frame from the images and LiDAR; other frames interpolate)",
-     {"invert": True}),
     ("--keep-sky-lookalikes", "prune_sky_lookalikes",
      "keep stage-1 Gaussians that have the sky's colour and only sky behind them (default: "
      "removed before stage 2; they cast shadows no roof casts)", {"invert": True}),

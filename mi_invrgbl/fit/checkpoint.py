@@ -89,8 +89,6 @@ def save_checkpoint(ctx: FitState, fingerprint: dict, stage, iteration, opt=None
         arrays["response/" + k] = np.array(getattr(ctx.response, k), np.float32)
     if ctx.object_poses:
         arrays.update({"poses/" + k: v for k, v in ctx.object_poses.state_dict().items()})
-    if ctx.rig_poses:
-        arrays.update({"rig/" + k: v for k, v in ctx.rig_poses.state_dict().items()})
     meta = {"stage": stage, "iteration": iteration, "rng": ctx.rng.bit_generator.state,
             "selection": ctx.selection, "use_sun": ctx.use_sun, "times": ctx.times,
             "log": ctx.speed_log.rows, "config": ctx.config.to_json(),
@@ -125,9 +123,6 @@ def load_checkpoint(ctx: FitState, fingerprint: dict):
         # Corrections fitted before the checkpoint (stage 2 renders the frames with them).
         ctx.object_poses.load_state_dict({k[6:]: v for k, v in data.items() if k.startswith("poses/")})
         ctx.object_poses.bake()
-    if ctx.rig_poses:
-        ctx.rig_poses.load_state_dict({k[4:]: v for k, v in data.items() if k.startswith("rig/")})
-        ctx.rig_poses.bake()
     ctx.rng.bit_generator.state = meta["rng"]
     ctx.selection = meta.get("selection", {})
     # The SH order chosen before the checkpoint still holds: without it a

@@ -17,7 +17,7 @@ MODEL_FIELDS = ("batch_rays", "lidar_batch_rays", "fit_width", "lidar_columns", 
                 "max_gaussians", "stage1_range", "stage1_drop", "stage1_sky", "seed", "fit_response",
                 "sun_candidates", "sun_gaussians", "per_frame_visibility", "learn_sun_direction",
                 "prune_sky_lookalikes", "sky_mask", "sun_visibility", "validation_every",
-                "object_poses", "rig_poses")
+                "object_poses")
 
 
 #: Largest ``pixel_grid`` (rays per pixel side in stage 2's camera hits).
@@ -165,8 +165,6 @@ class FitConfig:
     sun_visibility: str = "learn"  # learn | trace: the paper's per-Gaussian v_sun, or traced only
     #: Stage 1 corrects the moving objects' per-frame poses (.object_poses).
     object_poses: bool = True
-    #: Stage 1 corrects the camera's and LiDAR's per-frame poses (.rig_poses).
-    rig_poses: bool = True
     #: Every n-th training frame (``index % n == n // 2``) is a validation frame:
     #: not trained on, it scores the model selection. 0: no validation split
     #: (selection then scores training frames). Held-out frames never take part.

@@ -88,20 +88,6 @@ def load_state(scene_path, config: FitConfig, log=print) -> FitState:
         held_out_frames=held_out,
         intensity_scale=float(np.percentile(seen, 95)) if seen.size else 1.0,
         response=Response(mi.Float(2.0), mi.Float(1.0), dr.ones(mi.Float, max(n_beams, 1))))
-    # The rig first: the objects' heading search compares images at the
-    # cameras' poses.
-    if config.rig_poses:
-        from .rig_poses import RigPoseFit
-        rig = RigPoseFit(observations, train)
-        state.rig_poses = rig if rig else None
-        if rig:
-            t_align = time.perf_counter()
-            static = [model.cloud(n).centers for n, v in model.nodes.items() if not v.dynamic]
-            if static:
-                state.selection["rig_poses_start"] = rig.align_from_images(
-                    np.concatenate(static), log)
-                rig.bake()
-            state.times["rig poses"] = time.perf_counter() - t_align
     if config.object_poses:
         from .object_poses import ObjectPoseFit
         fit = ObjectPoseFit(observations, train, [n for n, v in model.nodes.items() if v.dynamic])

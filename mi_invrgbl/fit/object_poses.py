@@ -112,20 +112,6 @@ def interpolate(known_index, known_values, index):
                      for j in range(known_values.shape[1])], axis=-1)
 
 
-def correction_table(parts, train, count) -> np.ndarray:
-    """(count, WIDTH) per-frame corrections from the fitted ``parts`` (flat
-    arrays of 3 values per frame: translation, rotation vector): the values
-    at the ``train`` positions, interpolated at the others."""
-    fitted = np.concatenate([np.array(dr.detach(v), np.float64).reshape(-1, 3) for v in parts],
-                            axis=1)
-    out = fitted.copy()
-    trained = set(train)
-    others = [k for k in range(count) if k not in trained]
-    if others and train:
-        out[others] = interpolate(train, fitted[train], np.asarray(others))
-    return out
-
-
 class ObjectPoseFit:
     """The corrections of every moving object at every frame and the
     import's poses they correct. Per object and part (``t``, ``w``: see
@@ -166,8 +152,14 @@ class ObjectPoseFit:
     def table(self, name) -> np.ndarray:
         """(frames, WIDTH) corrections of ``name``: fitted at training frames,
         interpolated elsewhere."""
-        return correction_table([self.values[name, part] for part in PARTS], self.train,
-                                len(self.frames))
+        fitted = np.concatenate([np.array(dr.detach(self.values[name, part]), np.float64).reshape(-1, 3)
+                                 for part in PARTS], axis=1)
+        out = fitted.copy()
+        trained = set(self.train)
+        others = [k for k in range(len(self.frames)) if k not in trained]
+        if others:
+            out[others] = interpolate(self.train, fitted[self.train], np.asarray(others))
+        return out
 
     def bake(self) -> None:
         """Write the corrected poses (numpy) into every frame's ``poses``."""
@@ -202,7 +194,7 @@ class ObjectPoseFit:
         offsets and the mean colour differences before and after.
         """
         report = {}
-        views = [FrameView(self.frames[k]) for k in self.train]
+        views = [_FrameView(self.frames[k]) for k in self.train]
         for name in self.objects:
             pts = model.cloud(name).centers.astype(np.float64)
             if len(pts) > MAX_POINTS:
@@ -288,7 +280,7 @@ MAX_POINTS = 4000
 SMOOTHNESS = 0.015
 
 
-class FrameView:
+class _FrameView:
     """A training frame's image and pinhole projection (numpy)."""
 
     def __init__(self, frame):

@@ -37,25 +37,13 @@ def fitted_xml(ctx, lidar=False):
                 else np.zeros(3)
             for child in xml.shsun_emitter(None, sky, order, d, e):
                 xml.set_child(em, child)
-    frames = corrected_frames(ctx)
     if ctx.object_poses:
         # Objects load at frame 0's pose (``scene.posing.set_frame`` moves
         # them on from there): the corrected one, as in the fit's frames.json.
-        first = frames.frames[0].objects
+        first = ctx.object_poses.corrected_frames(ctx.frames).frames[0].objects
         for shape in doc.root.iter("shape"):
             if shape.get("type") == "gaussians" and shape.get("id") in first:
                 xml.set_child(shape, xml.transform(first[shape.get("id")]))
-    if ctx.rig_poses:
-        # Every frame's sensors where stage 1 put the rig (frames.json agrees).
-        placed = {}
-        for record in frames.frames:
-            if record.camera:
-                placed[record.camera] = record.camera_to_world_mitsuba
-            if record.lidar:
-                placed[record.lidar] = record.lidar_to_world
-        for sensor in doc.root.iter("sensor"):
-            if sensor.get("id") in placed:
-                xml.set_child(sensor, xml.transform(placed[sensor.get("id")]))
     # The fitted scene blends as many Gaussians per ray as the fit did: the
     # ones behind the fit's max_hits (or past its transmittance cut) never
     # got a gradient. Drawn with the plugins' larger defaults (64, 1e-3),
@@ -82,16 +70,6 @@ def fitted_xml(ctx, lidar=False):
             xml.set_child_param(integ, "string", "sun_visibility", "attribute")
     doc.set_integrator(integ)
     return doc.to_string()
-
-
-def corrected_frames(ctx):
-    """The import's frames with stage 1's corrections of the moving objects'
-    and the rig's poses (what the fit writes as its own ``frames.json``)."""
-    frames = ctx.frames
-    for fit in (ctx.object_poses, ctx.rig_poses):
-        if fit:
-            frames = fit.corrected_frames(frames)
-    return frames
 
 
 def write_maps(ctx, stage2, out_dir):
@@ -135,16 +113,12 @@ def write_outputs(ctx, stage2, interrupted=False):
     atomic_write_text(os.path.join(fit_dir, "scene.xml"), fitted_xml(ctx))
     atomic_write_text(os.path.join(fit_dir, "scene_lidar.xml"), fitted_xml(ctx, lidar=True))
     frames = ctx.frames
-    if ctx.object_poses or ctx.rig_poses:
-        # The moving objects and the sensors where stage 1 put them, for
-        # eval and the apps (frames.json in the fit folder is found before
-        # the import's).
-        frames = corrected_frames(ctx)
-        frames.save(os.path.join(fit_dir, "frames.json"))
     if ctx.object_poses:
+        # The moving objects where stage 1 put them, for eval and the apps
+        # (frames.json in the fit folder is found before the import's).
+        frames = ctx.object_poses.corrected_frames(ctx.frames)
+        frames.save(os.path.join(fit_dir, "frames.json"))
         ctx.selection["object_poses"] = ctx.object_poses.summary()
-    if ctx.rig_poses:
-        ctx.selection["rig_poses"] = ctx.rig_poses.summary()
     if stage2 is not None and any(f.lidar is not None for f in ctx.train_frames):
         from .response import fit_scene_ray_drop
         ctx.selection["ray_drop"] = fit_scene_ray_drop(

@@ -33,7 +33,6 @@ from .render import gather_rays as _gather_rays
 from .steps import safe_step
 from .evaluate import score_stage1
 from .object_poses import PARTS as POSE_PARTS
-from .rig_poses import NAME as RIG, PARTS as RIG_PARTS
 from .variables import GaussianVariable, Optimizer, PoseVariable, SkySH
 from ..physics.host_arrays import jit_array
 
@@ -71,26 +70,20 @@ class Stage1:
         if poses:
             out += [PoseVariable(poses, name, part, lr * scale, bound)
                     for name in poses.objects for part, (lr, bound) in POSE_PARTS.items()]
-        rig = self.ctx.rig_poses
-        if rig:
-            out += [PoseVariable(rig, RIG, part, lr * scale, bound)
-                    for part, (lr, bound) in RIG_PARTS.items()]
         return out
 
     def build_optimizer(self):
         self.opt = Optimizer(self.variables())
 
     def pull(self):
-        """Adam's values into the model; every frame's object poses, sensors
-        and rays follow the corrections (the scores and everything after
-        stage 1 read ``frame.poses`` and the frames' rays). A step needs
-        none of that (it renders with the corrections themselves), so
-        :meth:`iteration` only writes Adam's values."""
+        """Adam's values into the model; every frame's object poses follow
+        the corrections (the scores and everything after stage 1 read
+        ``frame.poses``). A step needs no baked poses (it renders with the
+        corrections themselves), so :meth:`iteration` only writes Adam's
+        values: baking every frame's poses took about 5 % of a KITTI step."""
         self.opt.pull()
         if self.ctx.object_poses:
             self.ctx.object_poses.bake()
-        if self.ctx.rig_poses:
-            self.ctx.rig_poses.bake()
 
     def score(self, frames, **kw):
         """:func:`~.evaluate.score_stage1` of ``frames`` as the stage stands."""
@@ -107,11 +100,10 @@ class Stage1:
         """The stage's state, Gaussians (their number changes with
         densification), sky and object poses, as host arrays to come back to."""
         self.pull()
-        poses = {}
-        for fit in (self.ctx.object_poses, self.ctx.rig_poses):
-            poses.update(fit.state_dict() if fit else {})
+        poses = self.ctx.object_poses
         return (self.model.state_dict(),
-                np.array(dr.detach(self.ctx.params[self.ctx.sky_key]), np.float32), poses)
+                np.array(dr.detach(self.ctx.params[self.ctx.sky_key]), np.float32),
+                poses.state_dict() if poses else {})
 
     def restore(self, snapshot):
         """Return to a :meth:`snapshot`; Adam starts afresh from it."""
@@ -119,10 +111,9 @@ class Stage1:
         self.model.load_state_dict(model)
         self.ctx.params[self.ctx.sky_key] = jit_array(mi.Float, sky)
         self.ctx.params.update()
-        for fit in (self.ctx.object_poses, self.ctx.rig_poses):
-            if fit:
-                fit.load_state_dict(poses)
-                fit.bake()
+        if self.ctx.object_poses:
+            self.ctx.object_poses.load_state_dict(poses)
+            self.ctx.object_poses.bake()
         self.grad_accum = {}
         self.build_optimizer()
 
@@ -142,7 +133,7 @@ class Stage1:
             # against 18.46 on the KITTI excerpt's validation frames after
             # 600 steps, 18.38 against 18.50 rendered with 2 x 2 rays per
             # pixel as eval does (tests/bench/stage1_steps.py).
-            rays = self._rays(frame, idx)
+            rays = _gather_rays(cam.rays, idx)
             rgb, alpha, _ = camera_unlit(self.ctx.scene, rays, cfg.max_hits, cfg.min_transmittance)
             target = dr.gather(mi.Color3f, self.ctx.image_array(frame), idx)
             terms["rgb"] = losses.rgb_loss(rgb, target, space=cfg.rgb_space)
@@ -154,7 +145,7 @@ class Stage1:
             n = len(pool)
             sel = batch_order(pool[self.rng.integers(0, n, min(self.batch_lidar, n))])
             idx = jit_array(mi.UInt32, sel)
-            rays = self._rays(frame, idx, lidar=True)
+            rays = _gather_rays(lid.rays, idx)
             ch = lidar_beams(self.ctx.lidar_integrator, self.ctx.scene, rays,
                              dr.gather(mi.UInt32, lid.row, idx), dr.gather(mi.Float, lid.near, idx))
             hit = jit_array(mi.Bool, lid.hit.ravel()[sel])
@@ -163,14 +154,6 @@ class Stage1:
             terms["range"] = losses.range_loss(ch[1], obs_range, both) * cfg.stage1_range
             terms["raydrop"] = losses.ray_drop_loss(ch[4], hit) * cfg.stage1_drop
         return terms
-
-    def _rays(self, frame, idx, lidar=False):
-        """The step's camera (or LiDAR) rays ``idx``: along the rig's
-        corrected pose, differentiable in it, where it is fitted."""
-        rig = self.ctx.rig_poses
-        if rig:
-            return rig.rays(frame, idx, lidar)
-        return _gather_rays(frame.lidar.rays if lidar else frame.camera.rays, idx)
 
     def iteration(self, it):
         ctx = self.ctx

@@ -74,8 +74,6 @@ class FitState:
     sun_visibility_learned: bool = False
     #: Stage 1's per-frame corrections of the moving objects' poses (None: off or nothing moves).
     object_poses: object = None
-    #: Stage 1's per-frame corrections of the sensor rig's pose (None: off).
-    rig_poses: object = None
     selection: dict = field(default_factory=dict)
     times: dict = field(default_factory=dict)
     iterations: dict = field(default_factory=dict)   # stage -> last iteration run
