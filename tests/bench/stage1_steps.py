@@ -10,7 +10,9 @@ budget, the lighting choice or stage 2, and prints the validation frames'
 PSNR (every counted pixel) every 50 steps with the time the steps took. At
 the end it prints, per second validation frame, the PSNR, the share of the
 squared error on pixels no Gaussian covers (alpha < 0.5) and in each third
-of the image (top, middle, bottom), and writes OUT.png: observed image,
+of the image (top, middle, bottom), and the training frames' PSNR (every 4th
+pixel: a stage that scores its training frames no higher than its
+validation frames underfits), and writes OUT.png: observed image,
 stage-1 render and error (|error| x 2) stacked per frame; an existing
 OUT.png is replaced only with ``--overwrite``.
 
