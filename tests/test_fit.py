@@ -1052,6 +1052,7 @@ def test_a_budget_below_the_fixed_costs_is_reported(scene_path, tmp_path):
         (metrics["times_s"]["freeze"] >= 1.0)
 
 
+@pytest.mark.slow   # (40-50 s each on 2 cores: real budgeted fits)
 def test_sun_trial_keeps_to_its_share_of_a_budget(scene_path, tmp_path, monkeypatch):
     # Under a budget the trial of a narrowly rejected sun takes at most
     # SUN_TRIAL_STEPS of stage 2's share, however many iterations it may run.
@@ -1082,6 +1083,7 @@ def test_sun_trial_keeps_to_its_share_of_a_budget(scene_path, tmp_path, monkeypa
     assert metrics["iterations"]["stage 2"] >= t["iterations"]
 
 
+@pytest.mark.slow   # (40-50 s each on 2 cores: real budgeted fits)
 def test_no_sun_trial_where_stage2_has_less_than_its_share_left(scene_path, tmp_path, monkeypatch):
     # The trial's start and scores cost the same however few its steps: on
     # the KITTI excerpt at 8 minutes it took 134 s for one step per
@@ -1477,6 +1479,7 @@ def test_pixel_area_hits_average_the_sub_pixel_rays(scene_path, tmp_path):
         freeze_pixels(scene, cam, 9)
 
 
+@pytest.mark.slow   # (40-50 s each on 2 cores: real budgeted fits)
 def test_a_resumed_budgeted_fit_goes_on_as_planned(scene_path, tmp_path, monkeypatch):
     """A budgeted fit interrupted in stage 1 and resumed goes on with its
     plan: the learning-rate schedules from where they stood (not from the
