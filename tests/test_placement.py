@@ -128,7 +128,7 @@ def test_an_out_of_date_cache_is_traced_again_at_its_reference_frame(moving_scen
 
 def test_stage1_scores_see_the_pose_corrections_its_steps_made(moving_scene, tmp_path):
     """A stage-1 step renders with the objects' pose corrections themselves
-    and bakes no frame's poses (that cost about 5 % of a KITTI step); a
+    and bakes no frame's poses (that cost 6 % of a KITTI step); a
     score, a snapshot or the stage's end bakes them first, so what it reads
     in ``frame.poses`` is where the steps have moved the objects."""
     from mi_invrgbl.fit.evaluate import score_stage1

@@ -36,11 +36,10 @@ def batch_order(index: np.ndarray) -> np.ndarray:
     at about the same step. On a fitted KITTI scene a 4 096-ray stage-1
     render took 0.173 s sorted against 0.300 s in draw order (2 cores,
     135 391 Gaussians). The loss is a mean over the batch; what a ray
-    renders changes only by rounding
-    in Embree's packet traversal, which now and then finds a flat
-    Gaussian's entry a hair nearer or farther (on a fitted KITTI scene
-    0.36 % of a batch's rays moved by more than 1e-3, one by 0.24;
-    ``tests/bench/batch_order.py``)."""
+    renders changes only by rounding in Embree's packet traversal, which
+    now and then finds a flat Gaussian's entry a hair nearer or farther
+    (on a fitted KITTI scene 0.36 % of a batch's rays moved by more than
+    1e-3, one by 0.24; ``tests/bench/batch_order.py``)."""
     return np.sort(index)
 
 
