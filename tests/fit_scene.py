@@ -130,3 +130,36 @@ if __name__ == "__main__":
     variant_choice.use()
     import mi_invrgbl  # noqa: F401
     print(build(sys.argv[1]))
+
+
+def build_with_block(out_dir, n_frames=4, width=32, height=12, columns=64):
+    """:func:`build`, then ``object_1``: a 1 m block of 125 Gaussians 0.6 m
+    above the road that drives 2.5 m further down the street at every frame
+    (a moving node, its poses in frames.json). Returns the scene path."""
+    from mi_invrgbl.physics.gaussian_ply import GaussianCloud, write_ply
+    path = build(out_dir, n_frames=n_frames, width=width, height=height, columns=columns)
+    g = (np.stack(np.meshgrid(*[np.linspace(-0.5, 0.5, 5)] * 3, indexing="ij"), -1)
+         .reshape(-1, 3).astype(np.float32))
+    n = len(g)
+    write_ply(os.path.join(out_dir, "object_1.ply"), GaussianCloud(
+        centers=g, scales=np.full((n, 3), 0.15, np.float32),
+        quaternions=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+        opacities=np.full(n, 0.9, np.float32), normals=np.tile(np.float32([0, 0, 1]), (n, 1))))
+    placed = []
+    for i in range(n_frames):
+        T = np.eye(4)
+        T[:3, 3] = (3.0 + 2.5 * i, 0.8, 0.6)
+        placed.append(T)
+    matrix = " ".join("%.9g" % v for v in placed[0].ravel())
+    xml = open(path).read().replace(
+        "</scene>", '<shape type="gaussians" id="object_1"><string name="filename" '
+        'value="object_1.ply"/><transform name="to_world"><matrix value="%s"/></transform>'
+        "</shape></scene>" % matrix)
+    open(path, "w").write(xml)
+    meta = json.load(open(os.path.join(out_dir, "frames.json")))
+    meta["objects"] = {"object_1": {"track_id": 1, "kind": "Car", "size_hwl": [1, 1, 1],
+                                    "moving": True, "ply": "object_1.ply"}}
+    for i, f in enumerate(meta["frames"]):
+        f["objects"] = {"object_1": placed[i].tolist()}
+    json.dump(meta, open(os.path.join(out_dir, "frames.json"), "w"))
+    return path

@@ -9,57 +9,27 @@ every cache stage 2 fills is compared with a trace made from scratch with the
 scene placed for that cache's frame.
 """
 
-import json
-import os
 
 import numpy as np
 import pytest
 import drjit as dr
 import mitsuba as mi
 
-from fit_scene import build
+from fit_scene import build_with_block
 from mi_invrgbl.fit.config import FitConfig
 from mi_invrgbl.fit.init import load_state
 from mi_invrgbl.fit.stage2 import FrozenScene, Stage2
-from mi_invrgbl.physics.gaussian_ply import GaussianCloud, write_ply
 from mi_invrgbl.physics.lighting import GaussianLighting, LightingCache
 
 W, H, COLUMNS, FRAMES = 32, 12, 64, 4
-
-
-def _pose(x):
-    T = np.eye(4)
-    T[:3, 3] = (x, 0.8, 0.6)
-    return T
 
 
 @pytest.fixture(scope="module")
 def moving_scene(tmp_path_factory):
     """The fit scene with ``object_1``, a 1 m block of 125 Gaussians 0.6 m
     above the road, 2.5 m further down the street at every frame."""
-    root = str(tmp_path_factory.mktemp("placement"))
-    path = build(root, n_frames=FRAMES, width=W, height=H, columns=COLUMNS)
-    g = (np.stack(np.meshgrid(*[np.linspace(-0.5, 0.5, 5)] * 3, indexing="ij"), -1)
-         .reshape(-1, 3).astype(np.float32))
-    n = len(g)
-    write_ply(os.path.join(root, "object_1.ply"), GaussianCloud(
-        centers=g, scales=np.full((n, 3), 0.15, np.float32),
-        quaternions=np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
-        opacities=np.full(n, 0.9, np.float32), normals=np.tile(np.float32([0, 0, 1]), (n, 1))))
-    poses = [_pose(3.0 + 2.5 * i) for i in range(FRAMES)]
-    matrix = " ".join("%.9g" % v for v in poses[0].ravel())
-    xml = open(path).read().replace(
-        "</scene>", '<shape type="gaussians" id="object_1"><string name="filename" '
-        'value="object_1.ply"/><transform name="to_world"><matrix value="%s"/></transform>'
-        "</shape></scene>" % matrix)
-    open(path, "w").write(xml)
-    meta = json.load(open(os.path.join(root, "frames.json")))
-    meta["objects"] = {"object_1": {"track_id": 1, "kind": "Car", "size_hwl": [1, 1, 1],
-                                    "moving": True, "ply": "object_1.ply"}}
-    for i, f in enumerate(meta["frames"]):
-        f["objects"] = {"object_1": poses[i].tolist()}
-    json.dump(meta, open(os.path.join(root, "frames.json"), "w"))
-    return path
+    return build_with_block(str(tmp_path_factory.mktemp("placement")), n_frames=FRAMES,
+                            width=W, height=H, columns=COLUMNS)
 
 
 def _state(path, tmp_path, per_frame):

@@ -104,6 +104,9 @@ FLAGS = (
     ("--densify-screen", "densify_screen",
      "rank the Gaussians to split by their positional gradient in image space (the gradient "
      "in metres times the distance from the camera) instead of in metres", {}),
+    ("--densify-scope", "densify_scope",
+     "rank the Gaussians to split within each node (a moving object grows by the same share as "
+     "the background) or over the whole scene", {"choices": ("node", "scene")}),
     ("--checkpoint-every", "checkpoint_every", "iterations between checkpoints", {}),
     ("--eval-every", "eval_every", "iterations between held-out evaluations", {}),
     ("--resume", "resume", "continue the fit in the output folder from its "

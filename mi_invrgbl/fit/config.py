@@ -13,7 +13,7 @@ from .budget import ANNEAL_END, ANNEAL_FROM
 MODEL_FIELDS = ("batch_rays", "lidar_batch_rays", "fit_width", "lidar_columns", "max_hits", "min_transmittance",
                 "samples", "sky_patterns", "pixel_grid", "bounces", "shadowing", "diffuse_fresnel", "rgb_space", "weights", "bilateral_sigma", "slic_size", "lr_scale", "densify_every",
                 "densify_until", "anneal_from", "anneal_end", "prune_opacity", "densify_grad",
-                "densify_fraction", "densify_screen", "split_scale",
+                "densify_fraction", "densify_screen", "densify_scope", "split_scale",
                 "max_gaussians", "stage1_range", "stage1_drop", "stage1_sky", "seed", "fit_response",
                 "sun_candidates", "sun_gaussians", "per_frame_visibility", "learn_sun_direction",
                 "prune_sky_lookalikes", "sky_mask", "sun_visibility", "validation_every",
@@ -114,6 +114,12 @@ class FitConfig:
     #: space, as 3D Gaussian Splatting ranks them) instead of the gradient in
     #: metres, which favours the Gaussians nearest the cameras.
     densify_screen: bool = False
+    #: Where the densification's quota is ranked: ``node``, the top
+    #: ``densify_fraction`` of each node's Gaussians (every moving object
+    #: grows as fast as the background, however few pixels it covers), or
+    #: ``scene``, the top fraction of all Gaussians ranked together, so the
+    #: splits go where the gradients are largest.
+    densify_scope: str = "node"
     #: Densification splits a growing Gaussian larger than this (metres,
     #: largest axis) in two and clones a smaller one. 0: every growing
     #: Gaussian is split. Clones hurt on the street: with the split size at

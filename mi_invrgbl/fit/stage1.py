@@ -239,12 +239,22 @@ class Stage1:
         self.model.nodes[name].values["colour"] = jit_array(mi.Float, cloud.albedo)
 
     # ------------------------------------------------------------ densify
+    def _scene_cut(self) -> float:
+        """:func:`_quota_cut` over every node's Gaussians ranked together
+        (``densify_scope="scene"``)."""
+        cfg = self.ctx.config
+        seen = [_mean_gradients(acc) for name, acc in self.grad_accum.items()
+                if name in self.model.nodes and dr.width(acc[0]) == self.model.nodes[name].count]
+        return _quota_cut(np.concatenate(seen) if seen else np.zeros(0, np.float32),
+                          cfg.densify_fraction, cfg.densify_grad)
+
     def densify(self):
         """Prune transparent Gaussians, split/clone those with large gradients."""
         cfg = self.ctx.config
         self.pull()
         report, parents, fresh = {}, {}, {}
         total_now = self.model.total
+        scene_cut = self._scene_cut() if cfg.densify_scope == "scene" else None
         for name, node in self.model.nodes.items():
             cloud = self.model.cloud(name, stage=1)
             colour = np.clip(node.numpy("colour"), 0, 1)
@@ -260,8 +270,8 @@ class Stage1:
                 # The largest positional gradients (top ``densify_fraction``),
                 # as long as they are not negligible in absolute terms.
                 seen = mean_grad[acc[1] > 0]
-                cut = max(cfg.densify_grad, float(np.percentile(seen, 100 * (1 - cfg.densify_fraction)))
-                          if seen.size else np.inf)
+                cut = scene_cut if scene_cut is not None else \
+                    _quota_cut(seen, cfg.densify_fraction, cfg.densify_grad)
                 cand = np.nonzero(keep & (mean_grad >= cut))[0]
                 if budget and cand.size:
                     cand = cand[np.argsort(-mean_grad[cand])][: min(budget, cand.size)]
@@ -302,6 +312,22 @@ class Stage1:
         self.grad_accum = {}
         self.opt = self.opt.rebuild(self.variables(), parents, fresh)
         return report
+
+
+def _mean_gradients(acc) -> np.ndarray:
+    """Mean accumulated positional gradient of the Gaussians seen since the
+    last densification (``acc``: summed gradient norms and step counts)."""
+    total, steps = (np.array(a, np.float32) for a in acc)
+    return (total / np.maximum(steps, 1))[steps > 0]
+
+
+def _quota_cut(seen: np.ndarray, fraction, floor) -> float:
+    """The gradient a Gaussian must reach to grow: the top ``fraction`` of
+    ``seen`` (mean gradients), but never below ``floor``; infinite when
+    nothing was seen."""
+    if not seen.size:
+        return np.inf
+    return max(floor, float(np.percentile(seen, 100 * (1 - fraction))))
 
 
 def _camera_origin(frame):
