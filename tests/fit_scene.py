@@ -125,13 +125,6 @@ def build(out_dir, n_frames=5, width=96, height=32, columns=256, sun=True, truth
     return os.path.join(out_dir, "scene.xml")
 
 
-if __name__ == "__main__":
-    import sys
-    variant_choice.use()
-    import mi_invrgbl  # noqa: F401
-    print(build(sys.argv[1]))
-
-
 def build_with_block(out_dir, n_frames=4, width=32, height=12, columns=64):
     """:func:`build`, then ``object_1``: a 1 m block of 125 Gaussians 0.6 m
     above the road that drives 2.5 m further down the street at every frame
@@ -163,3 +156,11 @@ def build_with_block(out_dir, n_frames=4, width=32, height=12, columns=64):
         f["objects"] = {"object_1": placed[i].tolist()}
     json.dump(meta, open(os.path.join(out_dir, "frames.json"), "w"))
     return path
+
+
+if __name__ == "__main__":
+    import sys
+    variant_choice.use()
+    import mi_invrgbl  # noqa: F401
+    print(build(sys.argv[1]))
+

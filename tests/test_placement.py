@@ -9,7 +9,6 @@ every cache stage 2 fills is compared with a trace made from scratch with the
 scene placed for that cache's frame.
 """
 
-
 import numpy as np
 import pytest
 import drjit as dr

@@ -243,8 +243,9 @@ class Stage1:
         """:func:`_quota_cut` over every node's Gaussians ranked together
         (``densify_scope="scene"``)."""
         cfg = self.ctx.config
-        seen = [_mean_gradients(acc) for name, acc in self.grad_accum.items()
-                if name in self.model.nodes and dr.width(acc[0]) == self.model.nodes[name].count]
+        seen = [mean[mask] for mean, mask in
+                (_mean_gradients(acc) for name, acc in self.grad_accum.items()
+                 if name in self.model.nodes and dr.width(acc[0]) == self.model.nodes[name].count)]
         return _quota_cut(np.concatenate(seen) if seen else np.zeros(0, np.float32),
                           cfg.densify_fraction, cfg.densify_grad)
 
@@ -261,17 +262,14 @@ class Stage1:
             cloud.albedo = colour
             keep = cloud.opacities > cfg.prune_opacity
             acc = self.grad_accum.get(name)
-            if acc is not None:
-                acc = [np.array(acc[0], np.float32), np.array(acc[1], np.float32)]
             grow = np.zeros(len(cloud), bool)
-            if acc is not None and acc[0].shape[0] == len(cloud):
-                mean_grad = acc[0] / np.maximum(acc[1], 1)
+            if acc is not None and dr.width(acc[0]) == len(cloud):
+                mean_grad, seen = _mean_gradients(acc)
                 budget = max(0, cfg.max_gaussians - total_now)
                 # The largest positional gradients (top ``densify_fraction``),
                 # as long as they are not negligible in absolute terms.
-                seen = mean_grad[acc[1] > 0]
                 cut = scene_cut if scene_cut is not None else \
-                    _quota_cut(seen, cfg.densify_fraction, cfg.densify_grad)
+                    _quota_cut(mean_grad[seen], cfg.densify_fraction, cfg.densify_grad)
                 cand = np.nonzero(keep & (mean_grad >= cut))[0]
                 if budget and cand.size:
                     cand = cand[np.argsort(-mean_grad[cand])][: min(budget, cand.size)]
@@ -314,11 +312,12 @@ class Stage1:
         return report
 
 
-def _mean_gradients(acc) -> np.ndarray:
-    """Mean accumulated positional gradient of the Gaussians seen since the
-    last densification (``acc``: summed gradient norms and step counts)."""
+def _mean_gradients(acc):
+    """Each Gaussian's mean accumulated positional gradient since the last
+    densification (``acc``: summed gradient norms and step counts), and
+    which of them were seen at all."""
     total, steps = (np.array(a, np.float32) for a in acc)
-    return (total / np.maximum(steps, 1))[steps > 0]
+    return total / np.maximum(steps, 1), steps > 0
 
 
 def _quota_cut(seen: np.ndarray, fraction, floor) -> float:
