@@ -10,6 +10,7 @@ import pathlib
 import pytest
 import mitsuba as mi
 
+import tiny_street as tiny_street_data
 import variant_choice
 
 
@@ -53,3 +54,10 @@ def kitti_dir():
     if not path.exists():
         pytest.skip("shared KITTI excerpt not present")
     return path
+
+
+@pytest.fixture(scope="session")
+def tiny_street(tmp_path_factory):
+    """The tiny synthetic street of :mod:`tiny_street` (read only)."""
+    variant_choice.use()
+    return tiny_street_data.generate(tmp_path_factory.mktemp("tiny_street") / "street")

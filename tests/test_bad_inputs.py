@@ -27,7 +27,6 @@ from mi_invrgbl.cli import main
 from mi_invrgbl import outdir
 from mi_invrgbl.io.velodyne import write_velodyne
 
-TINY = dict(seed=3, frames=6, width=64, height=24, azimuth_steps=256, spp=2, night=False)
 IMPORT_ARGS = ["--max-points", "20000", "--azimuth-steps", "256"]
 
 
@@ -36,12 +35,8 @@ def _quiet(*_a, **_k):
 
 
 @pytest.fixture(scope="module")
-def street(tmp_path_factory):
-    from mi_invrgbl.synthetic import StreetConfig, generate_street
-    mi.set_variant("llvm_ad_rgb")
-    out = tmp_path_factory.mktemp("bad_street") / "street"
-    generate_street(str(out), StreetConfig(**TINY), log=_quiet)
-    return out
+def street(tiny_street):
+    return tiny_street
 
 
 @pytest.fixture(scope="module")

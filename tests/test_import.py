@@ -28,9 +28,9 @@ from mi_invrgbl.io.velodyne import write_velodyne
 from mi_invrgbl.physics.gaussian_ply import read_ply, quaternion_to_matrix
 from mi_invrgbl.scene.frames import Frames
 from mi_invrgbl.scene.posing import set_frame
-import variant_choice
+import tiny_street
 
-TINY = dict(seed=3, frames=6, width=64, height=24, azimuth_steps=256, spp=2, night=False)
+TINY = tiny_street.CONFIG
 TINY_OPTS = dict(max_points=20000, azimuth_steps=256)
 
 
@@ -39,12 +39,8 @@ def _quiet(*_a, **_k):
 
 
 @pytest.fixture(scope="session")
-def street(tmp_path_factory):
-    from mi_invrgbl.synthetic import StreetConfig, generate_street
-    variant_choice.use()
-    out = tmp_path_factory.mktemp("import_street") / "street"
-    generate_street(str(out), StreetConfig(**TINY), log=_quiet)
-    return out
+def street(tiny_street):
+    return tiny_street
 
 
 @pytest.fixture(scope="session")
