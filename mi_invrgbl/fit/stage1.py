@@ -239,32 +239,30 @@ class Stage1:
         self.model.nodes[name].values["colour"] = jit_array(mi.Float, cloud.albedo)
 
     # ------------------------------------------------------------ densify
-    def _scene_cut(self) -> float:
-        """:func:`_quota_cut` over every node's Gaussians ranked together
-        (``densify_scope="scene"``)."""
-        cfg = self.ctx.config
-        seen = [mean[mask] for mean, mask in
-                (_mean_gradients(acc) for name, acc in self.grad_accum.items()
-                 if name in self.model.nodes and dr.width(acc[0]) == self.model.nodes[name].count)]
-        return _quota_cut(np.concatenate(seen) if seen else np.zeros(0, np.float32),
-                          cfg.densify_fraction, cfg.densify_grad)
-
     def densify(self):
         """Prune transparent Gaussians, split/clone those with large gradients."""
         cfg = self.ctx.config
         self.pull()
         report, parents, fresh = {}, {}, {}
         total_now = self.model.total
-        scene_cut = self._scene_cut() if cfg.densify_scope == "scene" else None
+        # Each node's mean gradients and which Gaussians were seen, read back
+        # once (nodes whose accumulation no longer matches their count grow
+        # nothing); ranked per node, or with one cut over all of them.
+        means = {name: _mean_gradients(acc) for name, acc in self.grad_accum.items()
+                 if name in self.model.nodes and dr.width(acc[0]) == self.model.nodes[name].count}
+        scene_cut = None
+        if cfg.densify_scope == "scene":
+            seen_all = [mean[seen] for mean, seen in means.values()]
+            scene_cut = _quota_cut(np.concatenate(seen_all) if seen_all else np.zeros(0, np.float32),
+                                   cfg.densify_fraction, cfg.densify_grad)
         for name, node in self.model.nodes.items():
             cloud = self.model.cloud(name, stage=1)
             colour = np.clip(node.numpy("colour"), 0, 1)
             cloud.albedo = colour
             keep = cloud.opacities > cfg.prune_opacity
-            acc = self.grad_accum.get(name)
             grow = np.zeros(len(cloud), bool)
-            if acc is not None and dr.width(acc[0]) == len(cloud):
-                mean_grad, seen = _mean_gradients(acc)
+            if name in means:
+                mean_grad, seen = means[name]
                 budget = max(0, cfg.max_gaussians - total_now)
                 # The largest positional gradients (top ``densify_fraction``),
                 # as long as they are not negligible in absolute terms.
