@@ -243,6 +243,24 @@ def test_every_frame_held_out_is_refused(scene_path, tmp_path):
         run_fit(path, small_config(tmp_path / "fit"), log=lambda *a: None)
 
 
+def test_validation_frames_sit_between_the_held_out_frames():
+    """The import holds out ``index % 5 == 4``; validation frames are taken
+    two frames from the held-out ones, so the frames beside a held-out frame
+    are trained on, for every split that is a multiple of 5."""
+    from types import SimpleNamespace
+    from mi_invrgbl.fit.init import split_validation
+    frames = [SimpleNamespace(index=i) for i in range(40) if i % 5 != 4]
+    for every, expected in ((5, [2, 7, 12, 17, 22, 27, 32, 37]), (10, [2, 12, 22, 32])):
+        train, val = split_validation(frames, every)
+        assert [f.index for f in val] == expected
+        assert len(train) + len(val) == len(frames) and not set(map(id, train)) & set(map(id, val))
+        beside = [f for f in frames if (f.index + 1) % 5 == 4 or (f.index - 1) % 5 == 4]
+        assert beside and all(any(f is t for t in train) for f in beside)
+    assert split_validation(frames, 0)[1] == []
+    # Fewer than two frames left to train on: no split.
+    assert split_validation(frames[:2], 1) == (frames[:2], [])
+
+
 def test_fit_without_lidar_scans_runs_on_images_alone(scene_path, tmp_path):
     path = _edit_frames(scene_path, tmp_path, lambda f: f.pop("lidar_scan"))
     out = tmp_path / "fit"

@@ -190,6 +190,22 @@ def test_rgb_loss_in_srgb():
         L.rgb_loss(mi.Float([0.5]), mi.Float([0.4]), space="log")
 
 
+def test_rgb_loss_l1_with_saturated_channels_and_a_mask():
+    # The absolute difference: gradient sign(y - t) / n under the mask,
+    # saturated targets still a lower bound; predictions stay 0.05 from the
+    # kink at the target so the finite differences do not straddle it.
+    n = 24
+    tgt = np.where(np.arange(3 * n) % 4 == 0, 1.0, RNG.uniform(0.1, 0.8, 3 * n))
+    x = tgt + np.where(RNG.uniform(size=3 * n) > 0.5, 1, -1) * RNG.uniform(0.05, 0.3, 3 * n)
+    mask = RNG.uniform(size=n) > 0.3
+    d = lambda y: np.where((tgt >= L.SATURATED) & (y > tgt), 0.0, y - tgt)  # noqa: E731
+    tc = as_color(mi.Float(tgt.astype(np.float32)))
+    val, g = dr_grad(lambda c: L.rgb_loss(c, tc, mi.Bool(mask), norm="l1"), x, as_color)
+    check(val, g, lambda y: np_masked_mean(np.abs(d(y)).reshape(-1, 3), mask), x)
+    with pytest.raises(ValueError, match="norm"):
+        L.rgb_loss(mi.Float([0.5]), mi.Float([0.4]), norm="l3")
+
+
 def test_grad_lidar_range_raydrop():
     n = 20
     x = RNG.uniform(0.05, 0.95, n)

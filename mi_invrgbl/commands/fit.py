@@ -51,6 +51,9 @@ FLAGS = (
     ("--rgb-space", "rgb_space",
      "colour space of the camera loss in both stages: sRGB (what PSNR and the eye compare) or "
      "linear (the paper's)", {"choices": ("srgb", "linear")}),
+    ("--rgb-norm", "rgb_norm",
+     "norm of the camera loss in both stages: the paper's squared difference (l2) or the "
+     "absolute difference (l1)", {"choices": ("l2", "l1")}),
     ("--render-samples", "render_samples",
      "sky samples M written into the fitted scene.xml: 'auto' (the smallest of 4/8/16/32, "
      "up to --samples, within 0.1 dB of the best validation PSNR) or a number", {}),
@@ -93,6 +96,10 @@ FLAGS = (
     ("--keep-sky-lookalikes", "prune_sky_lookalikes",
      "keep stage-1 Gaussians that have the sky's colour and only sky behind them (default: "
      "removed before stage 2; they cast shadows no roof casts)", {"invert": True}),
+    ("--validation-every", "validation_every",
+     "every N-th training frame is a validation frame (index %% N == min(2, N // 2)): not "
+     "trained on, it scores the model choices and the early stop (0: none; selection then "
+     "scores training frames)", {}),
     ("--budget", "budget_minutes",
      "wall-time budget in minutes: both stages' iterations, stage 1's batch and learning-rate "
      "schedule from the measured speed, early stop on validation frames (overrides "

@@ -11,7 +11,7 @@ from .budget import ANNEAL_END, ANNEAL_FROM
 #: cannot be resumed). Iteration counts, logging, output and the options that
 #: only force a selection (whose outcome the checkpoint records) are not among them.
 MODEL_FIELDS = ("batch_rays", "lidar_batch_rays", "fit_width", "lidar_columns", "max_hits", "min_transmittance",
-                "samples", "sky_patterns", "pixel_grid", "bounces", "shadowing", "diffuse_fresnel", "rgb_space", "weights", "bilateral_sigma", "slic_size", "lr_scale", "densify_every",
+                "samples", "sky_patterns", "pixel_grid", "bounces", "shadowing", "diffuse_fresnel", "rgb_space", "rgb_norm", "weights", "bilateral_sigma", "slic_size", "lr_scale", "densify_every",
                 "densify_until", "anneal_from", "anneal_end", "prune_opacity", "densify_grad",
                 "densify_fraction", "densify_screen", "densify_scope", "split_scale",
                 "max_gaussians", "stage1_range", "stage1_drop", "stage1_sky", "seed", "fit_response",
@@ -75,6 +75,9 @@ class FitConfig:
     #: ``tests/bench/stage1_steps.py --set rgb_space=...``): 20.65 dB in sRGB
     #: against 19.49 in linear light (19.24 against 17.76 at 200 steps).
     rgb_space: str = "srgb"
+    #: Norm of the camera loss in both stages (``losses.RGB_NORMS``): the
+    #: paper's squared difference, or the absolute difference.
+    rgb_norm: str = "l2"
     #: Stage 2 turns each Gaussian's M sky directions to another of this many
     #: patterns every step (each pattern's visibility is traced once), so the
     #: albedo fits the sky integral rather than one fixed set of directions.
@@ -171,7 +174,8 @@ class FitConfig:
     sun_visibility: str = "learn"  # learn | trace: the paper's per-Gaussian v_sun, or traced only
     #: Stage 1 corrects the moving objects' per-frame poses (.object_poses).
     object_poses: bool = True
-    #: Every n-th training frame (``index % n == n // 2``) is a validation frame:
+    #: Every n-th training frame (``index % n == min(2, n // 2)``, :func:`.init.
+    #: split_validation`) is a validation frame:
     #: not trained on, it scores the model selection. 0: no validation split
     #: (selection then scores training frames). Held-out frames never take part.
     validation_every: int = 5

@@ -27,11 +27,15 @@ from ..physics.host_arrays import jit_array
 
 def split_validation(train, every):
     """(training, validation) frames: every ``every``-th training frame by
-    index (``index % every == every // 2``, midway between the held-out
-    ``index % 5 == 4``) validates, as long as two frames are left to train on."""
+    index validates, as long as two frames are left to train on.
+
+    The validation frames are ``index % every == min(2, every // 2)``: with
+    ``every`` a multiple of 5 they sit midway between the import's held-out
+    frames (``index % 5 == 4``), two frames from each, so the training
+    frames next to a held-out frame stay training frames."""
     if every <= 0:
         return list(train), []
-    val = [f for f in train if f.index % every == every // 2]
+    val = [f for f in train if f.index % every == min(2, every // 2)]
     if len(train) - len(val) < 2:
         return list(train), []
     return [f for f in train if f not in val], val

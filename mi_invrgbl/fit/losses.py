@@ -133,6 +133,8 @@ SATURATED = 0.99
 
 #: Colour spaces the camera loss can compare in (:func:`rgb_loss`).
 RGB_SPACES = ("linear", "srgb")
+#: Norms of the camera loss's per-channel difference (:func:`rgb_loss`).
+RGB_NORMS = ("l2", "l1")
 
 
 def srgb_encode(x):
@@ -143,8 +145,13 @@ def srgb_encode(x):
     return dr.select(x <= SRGB_KNEE, SRGB_SLOPE * x, power)
 
 
-def rgb_loss(pred, target, mask=None, space="linear"):
+def rgb_loss(pred, target, mask=None, space="linear", norm="l2"):
     r"""Camera fidelity :math:`\mathcal{L}_{rgb} = \Vert\hat C - C\Vert_2^2` (paper Eq. 6), as a mean.
+
+    ``norm="l1"``: the mean absolute difference instead, which pulls each
+    Gaussian towards the median of the pixels it covers rather than their
+    mean (less swayed by what the model cannot draw: unmodelled movers,
+    pixels off by a misalignment).
 
     ``pred`` / ``target``: linear RGB (Color3f per pixel or interleaved Float);
     ``mask`` (optional, per pixel) excludes pixels, e.g. the supplement's
@@ -164,9 +171,11 @@ def rgb_loss(pred, target, mask=None, space="linear"):
         pred, target = srgb_encode(pred), srgb_encode(target)
     elif space != "linear":
         raise ValueError("rgb_loss: space must be one of %s (got %r)" % (RGB_SPACES, space))
+    if norm not in RGB_NORMS:
+        raise ValueError("rgb_loss: norm must be one of %s (got %r)" % (RGB_NORMS, norm))
     diff = pred - target
     diff = dr.select(saturated & (diff > 0), 0.0, diff)
-    return _masked_mean(dr.square(diff), mask)
+    return _masked_mean(dr.square(diff) if norm == "l2" else dr.abs(diff), mask)
 
 
 def sky_loss(alpha, mask):

@@ -137,7 +137,7 @@ class Stage1:
             rays = _gather_rays(cam.rays, idx)
             rgb, alpha, _ = camera_unlit(self.ctx.scene, rays, cfg.max_hits, cfg.min_transmittance)
             target = dr.gather(mi.Color3f, self.ctx.image_array(frame), idx)
-            terms["rgb"] = losses.rgb_loss(rgb, target, space=cfg.rgb_space)
+            terms["rgb"] = losses.rgb_loss(rgb, target, space=cfg.rgb_space, norm=cfg.rgb_norm)
             if cam.sky is not None and cfg.stage1_sky > 0:
                 terms["sky"] = losses.sky_loss(alpha, jit_array(mi.Bool, cam.sky[sel])) * cfg.stage1_sky
         pool = frame.lidar.valid_index() if frame.lidar is not None else ()

@@ -712,7 +712,8 @@ class Stage2:
             cam = frame.camera
             target = ctx.image_array(frame)
             # Masked pixels (moving things no node models) weigh 0 in every term.
-            terms["rgb"] = losses.rgb_loss(c["rgb"], target, cam.valid_mask(), space=ctx.config.rgb_space)
+            terms["rgb"] = losses.rgb_loss(c["rgb"], target, cam.valid_mask(), space=ctx.config.rgb_space,
+                                           norm=ctx.config.rgb_norm)
             mask = cam.restrict(c["alpha"] > 0.5)
             if weights.rgb2lidar > 0:
                 terms["rgb2lidar"] = losses.bilateral_smoothness(

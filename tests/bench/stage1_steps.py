@@ -2,7 +2,7 @@
 
     python tests/bench/stage1_steps.py SCENE.xml OUT.png [--steps 200] [--lidar-batch N]
         [--camera-only] [--only-frame K] [--set FIELD=VALUE ...] [--score-every 50]
-        [--position-decay] [--overwrite]
+        [--position-decay] [--validation K,K,...] [--train-also K,K,...] [--overwrite]
 
 Runs ``fit``'s own stage 1 (:class:`mi_invrgbl.fit.stage1.Stage1`, with its
 densification) on an imported scene for ``--steps`` iterations, without the
@@ -21,7 +21,10 @@ K alone and scores it (how far one view gets with all the steps);
 ``--set`` changes a :class:`~mi_invrgbl.fit.config.FitConfig` field;
 ``--position-decay`` lets the centres' learning rate (and the object poses')
 decay over the steps as a budgeted fit's does (:func:`~mi_invrgbl.fit.budget.
-position_lr_factor`), so that long runs settle as ``fit --budget`` would. The
+position_lr_factor`), so that long runs settle as ``fit --budget`` would.
+``--validation`` scores only these validation frames and ``--train-also``
+trains on these validation frames too: with the same ``--validation`` in
+both, two runs compare training on more frames on frames neither trained on. The
 README's "KITTI: far below replaying the recording" numbers come from this
 script. Held-out frames are never read.
 """
@@ -73,6 +76,10 @@ def error_split(state, frame, cfg):
     return obs, pred, err, np.array(alpha).reshape(h, w)
 
 
+def _indices(text):
+    return [int(k) for k in text.split(",") if k.strip()]
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scene")
@@ -85,6 +92,10 @@ def main(argv=None):
     ap.add_argument("--score-every", type=int, default=50, help="steps between validation scores")
     ap.add_argument("--position-decay", action="store_true",
                     help="decay the centres' learning rate over the steps as fit --budget does")
+    ap.add_argument("--validation", default="", metavar="K,K,...",
+                    help="score only these validation frames (default: all of them)")
+    ap.add_argument("--train-also", default="", metavar="K,K,...",
+                    help="validation frames to train on as well (they are then not scored)")
     ap.add_argument("--variant", default=None)
     ap.add_argument("--overwrite", action="store_true", help="replace an existing OUT.png")
     args = ap.parse_args(argv)
@@ -98,6 +109,19 @@ def main(argv=None):
         if not state.train_frames:
             raise SystemExit("--only-frame %d is not a training frame" % args.only_frame)
         state.validation_frames = list(state.train_frames)
+    for flag, text in (("--validation", args.validation), ("--train-also", args.train_also)):
+        unknown = set(_indices(text)) - {f.index for f in state.validation_frames}
+        if unknown:
+            raise SystemExit("%s: %s not validation frames (those are %s)" % (
+                flag, sorted(unknown), [f.index for f in state.validation_frames]))
+    moved = set(_indices(args.train_also))
+    state.train_frames += [f for f in state.validation_frames if f.index in moved]
+    state.validation_frames = [f for f in state.validation_frames if f.index not in moved and (
+        not args.validation or f.index in _indices(args.validation))]
+    if moved and state.object_poses:
+        # The moved frames' pose corrections are fitted, not interpolated.
+        poses = state.object_poses
+        poses.train = sorted({poses.position[f.index] for f in state.train_frames})
     if args.camera_only:
         for f in state.train_frames:
             f.lidar = None
