@@ -52,8 +52,8 @@ FLAGS = (
      "colour space of the camera loss in both stages: sRGB (what PSNR and the eye compare) or "
      "linear (the paper's)", {"choices": ("srgb", "linear")}),
     ("--rgb-norm", "rgb_norm",
-     "norm of the camera loss in both stages: the paper's squared difference (l2) or the "
-     "absolute difference (l1)", {"choices": ("l2", "l1")}),
+     "norm of the camera loss in both stages: the absolute difference (l1) or the paper's "
+     "squared difference (l2)", {"choices": ("l1", "l2")}),
     ("--render-samples", "render_samples",
      "sky samples M written into the fitted scene.xml: 'auto' (the smallest of 4/8/16/32, "
      "up to --samples, within 0.1 dB of the best validation PSNR) or a number", {}),

@@ -47,8 +47,9 @@ def fingerprint(ctx: FitState) -> dict:
 #: Options a checkpoint may predate whose value then was another option's.
 PREDATED = {"lidar_batch_rays": "batch_rays"}
 #: Options a checkpoint may predate whose value then was not today's default
-#: (the camera loss compared in linear light before ``rgb_space`` existed).
-PREDATED_VALUES = {"rgb_space": "linear"}
+#: (the camera loss compared in linear light before ``rgb_space`` existed,
+#: and as a squared difference before ``rgb_norm`` did).
+PREDATED_VALUES = {"rgb_space": "linear", "rgb_norm": "l2"}
 
 
 def check_fingerprint(path, saved, current):
