@@ -202,6 +202,10 @@ def test_rgb_loss_l1_with_saturated_channels_and_a_mask():
     tc = as_color(mi.Float(tgt.astype(np.float32)))
     val, g = dr_grad(lambda c: L.rgb_loss(c, tc, mi.Bool(mask), norm="l1"), x, as_color)
     check(val, g, lambda y: np_masked_mean(np.abs(d(y)).reshape(-1, 3), mask), x)
+    # At the kink itself (a perfect prediction) value and gradient stay finite.
+    val0, g0 = dr_grad(lambda v: L.rgb_loss(v, mi.Float([0.0, 0.3, 1.0]), norm="l1"),
+                       np.array([0.0, 0.3, 1.0]), lambda v: v)
+    assert val0 == 0.0 and np.isfinite(g0).all() and np.abs(g0).max() <= 1 / 3 + 1e-6
     with pytest.raises(ValueError, match="norm"):
         L.rgb_loss(mi.Float([0.5]), mi.Float([0.4]), norm="l3")
 
