@@ -318,7 +318,14 @@ def test_knn_exact_and_pca():
     for j in rng.integers(0, 3000, 20):
         true = np.sort(np.linalg.norm(p - p[j], axis=1))[:8]
         np.testing.assert_allclose(d[j], true, atol=1e-4)
+    # the neighbours of some rows only: the same lists, and their frames
+    rows = rng.choice(3000, 200, replace=False)
+    qi, qd = ig.knn(p, 8, queries=rows)
+    np.testing.assert_allclose(qd, d[rows], atol=1e-6)
+    assert np.all(qi[:, 0] == rows)
     n, t, eig = ig.pca_frames(p, idx)
+    np.testing.assert_allclose(np.abs(np.sum(ig.pca_frames(p, qi)[0] * n[rows], 1)), 1, atol=1e-6)
+    assert ig.knn(p, 8, queries=np.zeros(0, int))[0].shape == (0, 8)
     truth = np.array([-0.1, 0, 1]) / np.linalg.norm([-0.1, 0, 1])
     assert np.median(np.abs(n @ truth)) > 0.99
     n = ig.orient_towards(n, np.tile([0, 0, 1.0], (len(n), 1)))
@@ -565,6 +572,10 @@ def test_extend_walls_only_where_the_top_beam_cut_a_facade():
     assert new[:, 2].max() == pytest.approx(8 * np.tan(top) + 3.0, abs=0.16)
     assert np.all(state.bg.intensity[n:] == 0.5)
     assert len(state.bg.frame) == len(state.bg.points) == len(state.bg.extended)
+    # each added point names the measured facade point it stands on
+    seed = state.bg.seed[n:]
+    assert np.all((seed >= 0) & (seed < n)) and np.all(state.bg.seed[:n] == -1)
+    assert np.allclose(pts[seed, 1], new[:, 1]) and np.all(new[:, 2] > pts[seed, 2])
 
 
 def test_extend_walls_option_is_checked():
@@ -651,3 +662,80 @@ def test_import_extends_a_truck_the_top_beam_cut():
 def test_object_headroom_option_is_checked():
     with pytest.raises(UserError, match="object-headroom"):
         ImportOptions(object_headroom=-0.5).validate()
+
+
+def _state_with(points, top_deg=10.0):
+    from mi_invrgbl.io.importer import BackgroundPoints, ImportState
+    pts = np.asarray(points, np.float32)
+    n = len(pts)
+    return ImportState(intensity=("raw", 2.0), positions=[0], scans=[], images=[], K=np.eye(3), size=(1, 1), crop=None,
+                       skipped=[], poses=np.eye(4)[None],
+                       lidar_table=np.linspace(np.radians(top_deg), np.radians(-25), 64),
+                       bg=BackgroundPoints(pts, np.full(n, 0.5, np.float32),
+                                           np.linalg.norm(pts, axis=1).astype(np.float32),
+                                           np.zeros(n, np.int32)))
+
+
+def test_background_normals_come_from_every_voxel_not_the_thinned_centres():
+    from mi_invrgbl.io.importer import ImportOptions, _background
+    # Two facades meeting at a corner (x = 8 facing -x, y = 2 facing -y),
+    # sampled every 2 cm and thinned to 400 Gaussians: the thinned centres'
+    # neighbours reach round the corner, a voxel's neighbours do not.
+    zs = np.arange(-1.5, 1.0, 0.02)
+    a = np.array([(8.0, y, z) for y in np.arange(-2.0, 2.0, 0.02) for z in zs])
+    b = np.array([(x, 2.0, z) for x in np.arange(4.0, 8.0, 0.02) for z in zs])
+    pts = np.concatenate([a, b])
+    errors = {}
+    for k in (0, 16):
+        state = _state_with(pts)
+        opts = ImportOptions(max_points=400, voxel=0.02, normal_knn=k)
+        _background(state, opts, log=lambda *a: None)
+        g = state.background
+        # the truth of each Gaussian: the facade its centre lies on
+        on_a = np.abs(g["centers"][:, 0] - 8.0) < np.abs(g["centers"][:, 1] - 2.0)
+        t = np.where(on_a[:, None], [-1.0, 0, 0], [0, -1.0, 0])
+        cos = np.clip(np.abs(np.sum(g["normals"] * t, 1)), 0, 1)
+        # Gaussians on the corner's edge itself (within 10 cm) are left out
+        corner = np.hypot(g["centers"][:, 0] - 8.0, g["centers"][:, 1] - 2.0)
+        errors[k] = np.degrees(np.arccos(cos))[corner > 0.1]
+        assert np.all(np.isfinite(g["normals"]))
+        assert np.allclose(np.linalg.norm(g["normals"], axis=1), 1, atol=1e-5)
+    print({k: (round(float(v.mean()), 2), round(float(v.max()), 1)) for k, v in errors.items()})
+    assert errors[16].max() < 1.0                          # exact planes, exact normals
+    assert errors[0].max() > 20.0                          # the thinned centres reach round the corner
+    assert errors[16].mean() < 0.2 * errors[0].mean()
+
+
+def test_wall_extension_takes_its_seed_normal():
+    from mi_invrgbl.io.importer import ImportOptions, _background
+    # A facade patch 8 m away, turned 30 degrees about the vertical, and one
+    # column of points added above it (as _extend_walls adds them) beside a
+    # measured branch sticking out of the wall towards the sensor: the
+    # column's PCA finds the plane of column and branch, whose normal runs
+    # along the wall. The Gaussians on the column take the normal of the
+    # measured point below them.
+    turn = np.radians(30.0)
+    Rz = np.array([[np.cos(turn), -np.sin(turn), 0], [np.sin(turn), np.cos(turn), 0], [0, 0, 1]])
+    facade = np.array([(8.0, y, z) for y in np.arange(-1.0, 1.0, 0.05)
+                       for z in np.arange(-1.5, 1.4, 0.05)]) @ Rz.T
+    top = int(np.argmax(facade[:, 2] - np.abs(facade[:, 1] - facade[0, 1])))   # a top-edge point
+    column = facade[top] + np.array([[0, 0, 0.25 * (k + 1)] for k in range(12)])
+    want = Rz @ np.array([-1.0, 0.0, 0.0])
+    branch = column[6] + 0.1 * want + np.arange(12)[:, None] * 0.1 * want[None]
+    pts = np.concatenate([facade, branch, column])
+    for k in (0, 16):
+        cos = {}
+        for with_seed in (False, True):
+            state = _state_with(pts)
+            state.bg.seed = np.full(len(pts), -1, np.int64)
+            if with_seed:
+                state.bg.seed[-len(column):] = top
+            _background(state, ImportOptions(max_points=100000, voxel=0.05, normal_knn=k),
+                        log=lambda *a: None)
+            g = state.background
+            up = ((g["centers"][:, 2] > facade[:, 2].max() + 0.2)
+                  & (np.linalg.norm(g["centers"][:, :2] - column[0, :2], axis=1) < 0.01))
+            assert up.sum() == len(column)
+            cos[with_seed] = g["normals"][up] @ want
+        assert np.all(cos[True] > 0.999)                   # the facade's normal, facing the sensor
+        assert np.min(cos[False]) < 0.99                   # what the column alone gives

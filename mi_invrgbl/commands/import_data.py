@@ -41,7 +41,10 @@ def add_parser(subparsers):
     p.add_argument("--object-points", type=int, default=d.object_points,
                    help="Gaussians per dynamic object (default %(default)s)")
     p.add_argument("--knn", type=int, default=d.knn,
-                   help="neighbours for normals and scales (default %(default)s)")
+                   help="neighbouring Gaussians for scales and tangents (default %(default)s)")
+    p.add_argument("--normal-knn", type=int, default=d.normal_knn,
+                   help="neighbouring voxels (before thinning to --max-points) whose PCA gives each "
+                        "Gaussian's normal; 0: its --knn neighbouring Gaussians (default %(default)s)")
     p.add_argument("--opacity", type=float, default=d.opacity,
                    help="initial opacity (default %(default)s)")
     p.add_argument("--roughness", type=float, default=d.roughness,
@@ -85,7 +88,7 @@ def options_from_args(args):
     return ImportOptions(
         frames=args.frames, max_points=args.max_points, voxel=args.voxel,
         azimuth_steps=args.azimuth_steps, image_scale=args.image_scale, seed=args.seed,
-        dynamic=args.dynamic, object_points=args.object_points, knn=args.knn,
+        dynamic=args.dynamic, object_points=args.object_points, knn=args.knn, normal_knn=args.normal_knn,
         opacity=args.opacity, roughness=args.roughness,
         min_range=args.min_range, max_range=args.max_range,
         intensity=args.intensity, beams=args.beams, sky_order=args.sky_order,

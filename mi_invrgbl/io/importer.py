@@ -35,9 +35,13 @@ extend walls
     opacity of those that the images show as sky.
 normals
     Background: voxel dedupe (``voxel``), random subsample to ``max_points``
-    (seeded), k-NN (OpenCV FLANN), local PCA -> normal (oriented towards the
-    sensors that saw the voxel), tangent frame, scales from neighbour
-    spacing (tangent 0.5 x mean k-NN distance, normal 0.1 x that), LiDAR
+    (seeded), k-NN (OpenCV FLANN); normal by local PCA over the
+    ``normal_knn`` nearest voxels before the subsample (over the ``knn``
+    nearest kept Gaussians with ``normal_knn`` 0), oriented towards the
+    sensors that saw the voxel; a Gaussian on a wall extension takes the
+    normal of the measured point it extends, made horizontal. Tangent frame
+    from the kept Gaussians' neighbours, scales from their spacing (tangent
+    0.5 x mean k-NN distance, normal 0.1 x that), LiDAR
     albedo from intensity corrected for range and incidence angle
     (:func:`mi_invrgbl.io.init_gaussians.lidar_albedo`).
 objects
@@ -90,6 +94,7 @@ class ImportOptions:
     seed: int = 0
     dynamic: str = "moving"            # moving | all | none
     knn: int = 10
+    normal_knn: int = 16               # voxels whose PCA gives a Gaussian's normal (0: its knn centres)
     opacity: float = 0.7
     roughness: float = 0.5
     min_range: float = 1.0             # metres; background accumulation only
@@ -158,7 +163,14 @@ class BackgroundPoints:
     intensity: np.ndarray          # (N,) the sensor's intensity
     range: np.ndarray              # (N,) metres from the sensor that saw the point
     frame: np.ndarray              # (N,) position of that sweep among the imported frames
-    extended: np.ndarray | None = None   # (N,) bool: added above a wall cut by the top beam
+    #: (N,) int64: for a point added above a wall cut by the top beam, the
+    #: measured point it extends (its normal is that point's); -1 for measured points.
+    seed: np.ndarray | None = None
+
+    @property
+    def extended(self) -> np.ndarray | None:
+        """(N,) bool: added above a wall cut by the top beam."""
+        return None if self.seed is None else self.seed >= 0
 
 
 @dataclass
@@ -609,7 +621,7 @@ def _extend_walls(state: ImportState, opts, log, cell=0.25, min_height=1.0, step
                         ("frame", np.repeat(bg.frame[seeds], k.size))):
         old = getattr(bg, key)
         setattr(bg, key, np.concatenate([old, values.astype(old.dtype)]))
-    bg.extended = np.concatenate([np.zeros(len(P), bool), np.ones(n_new, bool)])
+    bg.seed = np.concatenate([np.full(len(P), -1, np.int64), np.repeat(seeds, k.size)])
     state.counts["wall_extension_points"] = int(n_new)
     log("[import] %d facade columns cut by the top beam extended by %.1f m (%d points)"
         % (seeds.size, opts.extend_walls, n_new))
@@ -656,6 +668,26 @@ def _background(state: ImportState, opts, log):
 
     idx, dist = ig.knn(centres, opts.knn)
     normals, tangents, eig = ig.pca_frames(centres, idx)
+    # A Gaussian added above a wall cut by the top beam stands on a column
+    # of made-up points whose PCA says nothing about the wall: it takes the
+    # normal of the measured point it extends, made horizontal (the
+    # extension is vertical).
+    seed = bg.seed[first[sel]] if bg.seed is not None else np.full(n, -1)
+    ext = np.nonzero(seed >= 0)[0]
+    if opts.normal_knn > 0 or ext.size:
+        # Normals from every voxel, not from the thinned centres: kept at
+        # random, the centres' neighbours span a metre or more and reach
+        # round corners and across tree crowns.
+        dense = ig.group_mean(P, inverse, nvox)
+        k = opts.normal_knn or opts.knn
+        if opts.normal_knn > 0:
+            normals, _, _ = ig.pca_frames(dense, ig.knn(dense, k, queries=sel)[0])
+        if ext.size:
+            n_seed, _, _ = ig.pca_frames(dense, ig.knn(dense, k, queries=inverse[seed[ext]])[0])
+            n_seed[:, 2] = 0.0
+            length = np.linalg.norm(n_seed, axis=1)
+            wall = length > 0.2        # a seed whose normal is near vertical keeps the PCA one
+            normals[ext[wall]] = n_seed[wall] / length[wall, None]
     normals = ig.orient_towards(normals, vmean)
     quats = ig.frames_to_quaternions(tangents, normals)
     scales = ig.tangent_scales(dist, smallest=0.2 * opts.voxel, largest=0.5)

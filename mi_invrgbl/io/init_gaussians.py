@@ -60,10 +60,11 @@ def group_mean(values: np.ndarray, inverse: np.ndarray, n: int) -> np.ndarray:
                      for c in range(values.shape[1])], axis=1)
 
 
-def knn(points: np.ndarray, k: int):
-    """Exact k nearest neighbours of every point among ``points``.
+def knn(points: np.ndarray, k: int, queries: np.ndarray | None = None):
+    """Exact k nearest neighbours among ``points`` of every point, or of the
+    points whose rows ``queries`` names.
 
-    Returns ``(indices (N, k) int64, distances (N, k) float32)``, sorted by
+    Returns ``(indices (Q, k) int64, distances (Q, k) float32)``, sorted by
     distance; column 0 is the point itself (distance 0) unless duplicates
     exist. Fewer than ``k`` points: the neighbour lists repeat the farthest.
     """
@@ -71,8 +72,9 @@ def knn(points: np.ndarray, k: int):
 
     pts = np.ascontiguousarray(np.asarray(points, np.float32).reshape(-1, 3))
     n = pts.shape[0]
-    if n == 0:
-        return np.zeros((0, k), np.int64), np.zeros((0, k), np.float32)
+    rows = np.arange(n) if queries is None else np.asarray(queries, np.int64).reshape(-1)
+    if n == 0 or rows.size == 0:
+        return np.zeros((rows.size, k), np.int64), np.zeros((rows.size, k), np.float32)
     kk = min(k, n)
     # Sort along a coarse grid so that consecutive queries visit the same leaves.
     extent = float(np.ptp(pts, axis=0).max()) if n > 1 else 1.0
@@ -81,12 +83,13 @@ def knn(points: np.ndarray, k: int):
     order = np.lexsort((g[:, 2], g[:, 1], g[:, 0]))
     sorted_pts = np.ascontiguousarray(pts[order])
     index = cv2.flann_Index(sorted_pts, dict(algorithm=4, leaf_max_size=10))  # single KD-tree
-    idx, d2 = index.knnSearch(sorted_pts, kk, params=dict(checks=32))
+    q_order = np.lexsort((g[rows, 2], g[rows, 1], g[rows, 0]))
+    idx, d2 = index.knnSearch(np.ascontiguousarray(pts[rows[q_order]]), kk, params=dict(checks=32))
     idx = order[idx.astype(np.int64)]
     out_idx = np.empty_like(idx)
     out_d = np.empty(idx.shape, np.float32)
-    out_idx[order] = idx
-    out_d[order] = np.sqrt(np.maximum(d2, 0.0))
+    out_idx[q_order] = idx
+    out_d[q_order] = np.sqrt(np.maximum(d2, 0.0))
     if kk < k:
         out_idx = np.concatenate([out_idx, np.repeat(out_idx[:, -1:], k - kk, 1)], 1)
         out_d = np.concatenate([out_d, np.repeat(out_d[:, -1:], k - kk, 1)], 1)
@@ -94,7 +97,9 @@ def knn(points: np.ndarray, k: int):
 
 
 def pca_frames(points: np.ndarray, neighbours: np.ndarray, chunk: int = 200_000):
-    """Local PCA over each point's neighbours.
+    """Local PCA over each point's neighbours: one frame per row of
+    ``neighbours`` (indices into ``points``; a subset of the points' rows
+    gives their frames only).
 
     Returns ``(normals (N, 3), tangents (N, 3), eigenvalues (N, 3))``: the
     normal is the eigenvector of the smallest eigenvalue, the tangent that of
@@ -102,7 +107,7 @@ def pca_frames(points: np.ndarray, neighbours: np.ndarray, chunk: int = 200_000)
     tangent, normal).
     """
     pts = np.asarray(points, np.float64)
-    n = pts.shape[0]
+    n = neighbours.shape[0]
     normals = np.zeros((n, 3))
     tangents = np.zeros((n, 3))
     eig = np.zeros((n, 3))
