@@ -503,6 +503,10 @@ def test_bad_options(street, tmp_path):
     with pytest.raises(UserError, match="--roughness"):
         import_scene(street, tmp_path / "o" / "scene.xml", ImportOptions(roughness=float("nan")),
                      log=_quiet)
+    for k in (-1, 2):
+        with pytest.raises(UserError, match="--normal-knn"):
+            import_scene(street, tmp_path / "o" / "scene.xml", ImportOptions(normal_knn=k),
+                         log=_quiet)
     with pytest.raises(UserError, match="scene.xml"):
         import_scene(street, tmp_path / "o", log=_quiet)
 

@@ -133,6 +133,8 @@ class ImportOptions:
             raise UserError(f"--roughness must lie in [0.02, 1] (got {self.roughness})")
         if self.knn < 3:
             raise UserError(f"--knn must be at least 3 (got {self.knn})")
+        if self.normal_knn != 0 and self.normal_knn < 3:
+            raise UserError(f"--normal-knn must be 0 or at least 3 (got {self.normal_knn})")
         if self.object_points < 10:
             raise UserError(f"--object-points must be at least 10 (got {self.object_points})")
         if not 0 <= self.min_range < self.max_range:
