@@ -665,7 +665,10 @@ def _background(state: ImportState, opts, log):
     pslot = slot[inverse]                         # per point: its Gaussian or -1
     used = pslot >= 0
     n = sel.size
-    centres = ig.group_mean(P[used], pslot[used], n)
+    # Every voxel's mean point: the kept ones are the Gaussians' centres,
+    # and all of them give the normals (below).
+    dense = ig.group_mean(P, inverse, nvox)
+    centres = dense[sel]
     vmean = ig.group_mean(view[used], pslot[used], n)
 
     idx, dist = ig.knn(centres, opts.knn)
@@ -680,7 +683,6 @@ def _background(state: ImportState, opts, log):
         # Normals from every voxel, not from the thinned centres: kept at
         # random, the centres' neighbours span a metre or more and reach
         # round corners and across tree crowns.
-        dense = ig.group_mean(P, inverse, nvox)
         k = opts.normal_knn or opts.knn
         if opts.normal_knn > 0:
             normals, _, _ = ig.pca_frames(dense, ig.knn(dense, k, queries=sel)[0])
