@@ -74,6 +74,11 @@ class Row:
     #: Held-out PSNR as trained (``log.csv``): stage 1's best, stage 2's last.
     stage1_peak_psnr: float | None = None
     stage2_end_psnr: float | None = None
+    #: LiDAR intensity RMSE on the raw held-out points along their own rays
+    #: (the fit's, and the nearest neighbour over every training point on the
+    #: points the fit returns): stricter than the range-image score above.
+    raw_intensity_rmse: float | None = None
+    nn_raw_intensity_rmse: float | None = None
     #: What the row's run changed, for rows kept in docs/bench (not tabulated).
     note: str = ""
 
@@ -261,7 +266,9 @@ def fit_budget(case, scene: Path, budget, variant, args, cal, log) -> Row:
                mean.get("albedo_rmse"), mean.get("normal_angle_deg"), mean.get("relight_psnr"),
                mean.get("lidar_intensity_rmse"), mean.get("baseline_intensity_rmse"),
                fit.get("peak_rss_mb"), wall, variant, nn_psnr=mean.get("baseline_psnr"),
-               stage1_peak_psnr=s1_peak, stage2_end_psnr=s2_end)
+               stage1_peak_psnr=s1_peak, stage2_end_psnr=s2_end,
+               raw_intensity_rmse=mean.get("raw_intensity_rmse"),
+               nn_raw_intensity_rmse=mean.get("raw_baseline_intensity_rmse"))
 
 
 COLUMNS = [("case", "case", "%s"), ("variant", "variant", "%s"), ("budget_min", "budget [min]", "%g"),
@@ -272,6 +279,8 @@ COLUMNS = [("case", "case", "%s"), ("variant", "variant", "%s"), ("budget_min", 
            ("relight_psnr", "relight PSNR [dB]", "%.2f"),
            ("intensity_rmse", "intensity RMSE", "%.4f"),
            ("nn_intensity_rmse", "NN intensity RMSE", "%.4f"),
+           ("raw_intensity_rmse", "raw-point intensity RMSE", "%.4f"),
+           ("nn_raw_intensity_rmse", "NN raw-point intensity RMSE", "%.4f"),
            ("peak_mb", "peak mem [MB]", "%.0f"), ("wall_s", "wall [s]", "%.0f")]
 
 
