@@ -79,3 +79,27 @@ def test_stage_psnr_reads_stage1_best_and_stage2_last(tmp_path):
     row = bc.Row("street", 8, 640, 846, psnr=25.81, stage1_peak_psnr=25.14, stage2_end_psnr=25.83)
     assert abs(row.stage2_gain - 0.69) < 1e-9 and "| +0.69 |" in bc.table([row])
     assert bc.Row("kitti", 8, 1, 1).stage2_gain is None
+
+
+def test_row_reads_both_lidar_scores_from_eval(tmp_path):
+    """A reused fit's row takes the range-image and the raw-point intensity
+    scores (the fit's and the nearest neighbour's) from eval's metrics.json."""
+    import argparse
+
+    out = tmp_path / "fit_8min"
+    out.mkdir()
+    (out / "metrics.json").write_text(json.dumps({
+        "mean": {"psnr": 22.3, "ssim": 0.79, "lidar_intensity_rmse": 0.1155,
+                 "baseline_intensity_rmse": 0.1654, "raw_intensity_rmse": 0.1292,
+                 "raw_baseline_intensity_rmse": 0.1464},
+        "fit": {"iterations": {"stage 1": 2484, "stage 2": 924}, "wall_s": 470.0,
+                "peak_rss_mb": 6062}}))
+    args = argparse.Namespace(native_budget=True, reuse=True, min_iterations=10)
+    row = bc.fit_budget("kitti", tmp_path / "scene.xml", 8, "llvm_ad_rgb", args, None,
+                        tmp_path / "bench.log")
+    assert (row.stage1, row.stage2) == (2484, 924)
+    assert (row.intensity_rmse, row.nn_intensity_rmse) == (0.1155, 0.1654)
+    assert (row.raw_intensity_rmse, row.nn_raw_intensity_rmse) == (0.1292, 0.1464)
+    cells = bc.table([row]).splitlines()[2].split(" | ")
+    assert "0.1292" in cells and "0.1464" in cells and "0.1155" in cells
+    assert not (tmp_path / "bench.log").exists()     # nothing was run
