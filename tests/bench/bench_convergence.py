@@ -14,7 +14,8 @@ imports once, then for every budget runs a real ``mi-invrgbl fit`` and
 and SSIM, the PSNR of the camera's lookup baseline (the nearest training
 image shown unchanged; a fit below it has not learnt the scene), albedo RMSE, normal error, relighting PSNR (street only: it has
 ground truth), LiDAR intensity RMSE of the fit and of the nearest-neighbour
-baseline, the fit's peak memory and its wall time. The rows go to
+baseline (every training point), on the range image and on the raw held-out
+points along their own rays, the fit's peak memory and its wall time. The rows go to
 ``WORK/convergence.md`` and ``WORK/convergence.json``, and a plot of error
 against wall time to ``WORK/convergence.png`` (drawn with OpenCV).
 
