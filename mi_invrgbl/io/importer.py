@@ -672,26 +672,26 @@ def _background(state: ImportState, opts, log):
     vmean = ig.group_mean(view[used], pslot[used], n)
 
     idx, dist = ig.knn(centres, opts.knn)
-    normals, tangents, eig = ig.pca_frames(centres, idx)
+    k = opts.normal_knn or opts.knn
+    if opts.normal_knn > 0:
+        # Frames from every voxel, not from the thinned centres: kept at
+        # random, the centres' neighbours span a metre or more and reach
+        # round corners and across tree crowns.
+        normals, tangents, _ = ig.pca_frames(dense, ig.knn(dense, k, queries=sel)[0])
+    else:
+        normals, tangents, _ = ig.pca_frames(centres, idx)
     # A Gaussian added above a wall cut by the top beam stands on a column
     # of made-up points whose PCA says nothing about the wall: it takes the
     # normal of the measured point it extends, made horizontal (the
     # extension is vertical).
     seed = bg.seed[first[sel]] if bg.seed is not None else np.full(n, -1)
     ext = np.nonzero(seed >= 0)[0]
-    if opts.normal_knn > 0 or ext.size:
-        # Normals from every voxel, not from the thinned centres: kept at
-        # random, the centres' neighbours span a metre or more and reach
-        # round corners and across tree crowns.
-        k = opts.normal_knn or opts.knn
-        if opts.normal_knn > 0:
-            normals, _, _ = ig.pca_frames(dense, ig.knn(dense, k, queries=sel)[0])
-        if ext.size:
-            n_seed, _, _ = ig.pca_frames(dense, ig.knn(dense, k, queries=inverse[seed[ext]])[0])
-            n_seed[:, 2] = 0.0
-            length = np.linalg.norm(n_seed, axis=1)
-            wall = length > 0.2        # a seed whose normal is near vertical keeps the PCA one
-            normals[ext[wall]] = n_seed[wall] / length[wall, None]
+    if ext.size:
+        n_seed, _, _ = ig.pca_frames(dense, ig.knn(dense, k, queries=inverse[seed[ext]])[0])
+        n_seed[:, 2] = 0.0
+        length = np.linalg.norm(n_seed, axis=1)
+        wall = length > 0.2        # a seed whose normal is near vertical keeps the PCA one
+        normals[ext[wall]] = n_seed[wall] / length[wall, None]
     normals = ig.orient_towards(normals, vmean)
     quats = ig.frames_to_quaternions(tangents, normals)
     scales = ig.tangent_scales(dist, smallest=0.2 * opts.voxel, largest=0.5)
