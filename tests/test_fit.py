@@ -939,6 +939,27 @@ def test_replan_adds_iterations_only_where_the_plan_was_too_slow():
         assert r(64, total) == total             # once only
 
 
+def test_stage1_plan_and_replan_stop_at_the_step_cap():
+    # A share that holds 10 000 steps of the configured batch (a CPU: no
+    # larger batches) plans STAGE1_MAX_STEPS and says what it cut; a share
+    # below the cap is planned as before; a re-timed plan never passes it.
+    from mi_invrgbl.fit.budget import Replan, STAGE1_MAX_STEPS, plan_stage
+    big = plan_stage("stage 1", 1000.0, 0.1, done=4, batched=False, most=STAGE1_MAX_STEPS)
+    assert big.iterations == STAGE1_MAX_STEPS and big.uncapped == 10004
+    assert big.as_dict()["uncapped_iterations"] == 10004
+    assert big.eval_every == STAGE1_MAX_STEPS // 12
+    small = plan_stage("stage 1", 100.0, 0.1, done=4, batched=False, most=STAGE1_MAX_STEPS)
+    assert small.iterations == 1004 and small.uncapped is None
+    assert "uncapped_iterations" not in small.as_dict()
+    now = [0.0]
+    r = Replan(first=4, deadline=1000.0, clock=lambda: now[0], most=STAGE1_MAX_STEPS)
+    total = 1004
+    now[0] += 1.0                      # 100 steps in 1 s: 99 000 more would fit
+    assert r(104, total) == STAGE1_MAX_STEPS
+    r = Replan(first=4, deadline=1000.0, clock=lambda: now[0], most=500)
+    assert r(104, total) == total      # a cap below the plan never shortens it
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("slow", [4.0])
 def test_budget_retimes_a_stage_planned_from_busy_steps(scene_path, tmp_path, monkeypatch, slow):

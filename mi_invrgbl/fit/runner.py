@@ -40,6 +40,7 @@ from .budget import (OUTPUT_RESERVE, SUN_TRIAL_STEPS, TIMED, Budget, EarlyStop, 
                      overrun_report, plan_stage, position_lr_factor, probe_batch_scale,
                      PLATEAU_LR_FACTOR, PLATEAU_REDUCTIONS, VALIDATION_SHARE, anneal_lr_factor,
                      small_budget_warning, stage1_seconds, stage_progress, time_iterations,
+                     STAGE1_MAX_STEPS,
                      fixed_costs, resumed_plan, resumed_progress)
 from .checkpoint import checkpoint_path, fingerprint, load_checkpoint, save_checkpoint
 from .config import FitConfig  # noqa: F401  (the fit's options, imported from here by callers)
@@ -182,7 +183,12 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
         # larger batches cheap (a GPU); on a CPU more steps of the
         # configured batch learn faster than fewer, larger ones.
         plan = plan_stage("stage 1", share - (time.perf_counter() - t),
-                          probe.seconds_per_iteration, done=start, batched=probe.scale > 1)
+                          probe.seconds_per_iteration, done=start, batched=probe.scale > 1,
+                          most=STAGE1_MAX_STEPS)
+        if plan.uncapped is not None:
+            state.log("[fit] budget: stage 1 takes %d steps, not the %d its share holds (a longer "
+                      "schedule fitted the street worse); stage 2 gets the time left"
+                      % (plan.iterations, plan.uncapped))
         set_scale(probe.scale * plan.batch_scale)
         plan.batch_scale *= probe.scale
         state.log("[fit] budget: stage 1 batch %d camera rays + %d LiDAR beams (%s s per step "
@@ -200,7 +206,7 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
         run.stop = stage1_stop(state, s1, plan, started + share)
         run.after_step = stage1_schedule(state, s1, lambda it, total: stage_progress(
             it, total, time.perf_counter() - started, share))
-        run.replan = replanner(state, plan, start, started + share)
+        run.replan = replanner(state, plan, start, started + share, most=STAGE1_MAX_STEPS)
         run.log_share = LOG_SHARE
     elif budget is not None and "stage 1" in state.selection.get("budget", {}):
         # A resumed budgeted stage keeps the batch and iterations its plan
@@ -355,10 +361,11 @@ def follow_normals(state: FitState, stage2):
         stage2.retraced["seconds"], 2), turn_deg=RETRACE_TURN_DEG)
 
 
-def replanner(state: FitState, plan, first, deadline):
-    """The budgeted stage's :class:`~.budget.Replan`, which records a raised
-    plan in the fit's selection (a resumed fit keeps it) and says so."""
-    retime = Replan(first, deadline)
+def replanner(state: FitState, plan, first, deadline, most=None):
+    """The budgeted stage's :class:`~.budget.Replan` (never past ``most``),
+    which records a raised plan in the fit's selection (a resumed fit keeps
+    it) and says so."""
+    retime = Replan(first, deadline, most=most)
 
     def replan(it, total):
         new = retime(it, total)
