@@ -5,7 +5,8 @@ early stopping on the validation frames.
 The budget is split between the stages (:data:`SHARES`; the rest pays for
 loading, tracing, selection and outputs). At each stage's start a few real
 iterations are timed; the stage then gets as many iterations as fit in its
-share. Once a tenth of them have run, the stage times itself again
+share (stage 1 at most :data:`STAGE1_MAX_STEPS`: a longer schedule fitted
+worse, and the time its share has left goes to stage 2). Once a tenth of them have run, the stage times itself again
 (:class:`Replan`): steps timed while another job held the cores, or while
 kernels still compiled, would otherwise plan too few iterations and leave
 the share half spent. Past :data:`MAX_ITERATIONS` a stage whose larger
