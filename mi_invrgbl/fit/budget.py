@@ -87,7 +87,7 @@ REPLAN_MAX = 4.0
 #: its share has left goes to stage 2. On the street on 2 cores stage 1's
 #: best validation PSNR was 29.08 dB at 8 minutes (1 009 steps), 29.40 at
 #: 30 (3 444) and 28.26 at 60 (6 044 steps; held-out as trained 29.37,
-#: 29.63, 28.71): over the longer schedule the positions moved at a high
+#: 29.63, 28.74): over the longer schedule the positions moved at a high
 #: rate for longer and held-out PSNR fell to 25.96 dB at step 2 200; with
 #: the cap the 60-minute fit's stage 1 reached 29.18 (best validation) and
 #: ``eval`` 29.13 dB against 28.39 (one run each). KITTI's 60-minute
