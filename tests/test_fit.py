@@ -1042,6 +1042,24 @@ def test_budgeted_stages_go_back_and_on_at_their_plateaus(scene_path, tmp_path, 
     assert metrics["interrupted"] is False and np.isfinite(metrics["heldout_psnr"])
 
 
+@pytest.mark.slow
+def test_budgeted_stage1_stops_at_the_step_cap(scene_path, tmp_path, monkeypatch):
+    # The runner plans and re-plans stage 1 under STAGE1_MAX_STEPS (here 12,
+    # far below what the share holds): stage 1 ends at the cap, records what
+    # the share held, and says so; stage 2 still runs.
+    from mi_invrgbl.fit import runner
+    monkeypatch.setattr(runner, "STAGE1_MAX_STEPS", 12)
+    lines = []
+    metrics = run_fit(scene_path, small_config(tmp_path, budget_minutes=0.6, eval_every=5),
+                      log=lines.append)
+    plan = metrics["selection"]["budget"]["stage 1"]
+    print(plan)
+    assert plan["iterations"] == 12 and plan["uncapped_iterations"] > 12
+    assert metrics["iterations"]["stage 1"] <= 12
+    assert any("stage 1 takes 12 steps" in str(x) for x in lines)
+    assert metrics["iterations"]["stage 2"] > 0 and np.isfinite(metrics["heldout_psnr"])
+
+
 def test_stage2_start_is_restored_exactly(scene_path, tmp_path):
     # The sun trial runs a second candidate from the same start and may go
     # back to the first: every node value, the step sizes, the shading start

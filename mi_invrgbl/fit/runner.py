@@ -186,8 +186,8 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
                           probe.seconds_per_iteration, done=start, batched=probe.scale > 1,
                           most=STAGE1_MAX_STEPS)
         if plan.uncapped is not None:
-            state.log("[fit] budget: stage 1 takes %d steps, not the %d its share holds (a longer "
-                      "schedule fitted the street worse); stage 2 gets the time left"
+            state.log("[fit] budget: stage 1 takes %d steps, not the %d its share holds (longer "
+                      "schedules fitted worse; STAGE1_MAX_STEPS); stage 2 gets the time left"
                       % (plan.iterations, plan.uncapped))
         set_scale(probe.scale * plan.batch_scale)
         plan.batch_scale *= probe.scale
