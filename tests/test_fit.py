@@ -1140,27 +1140,35 @@ def test_sun_trial_keeps_to_its_share_of_a_budget(scene_path, tmp_path, monkeypa
     assert metrics["iterations"]["stage 2"] >= t["iterations"]
 
 
-@pytest.mark.slow   # (40-50 s each on 2 cores: real budgeted fits)
-def test_no_sun_trial_where_stage2_has_less_than_its_share_left(scene_path, tmp_path, monkeypatch):
+def test_sun_trial_fits_where_stage2_keeps_a_quarter_of_its_share():
     # The trial's start and scores cost the same however few its steps: on
-    # the KITTI excerpt at 8 minutes it took 134 s for one step per
-    # candidate and left stage 2 nothing. Where stage 2 has less than its
-    # share left the sun test's decision stands and stage 2 gets the time.
+    # the KITTI excerpt at 8 minutes it once took 134 s for one step per
+    # candidate and left stage 2 nothing. The trial (a third of stage 2's
+    # share, its start included) runs only where stage 2 keeps a quarter of
+    # its share after it and the start leaves the trial room for steps.
     import time
-    from mi_invrgbl.fit import runner
-    from mi_invrgbl.fit.budget import Budget, OUTPUT_RESERVE
+    from mi_invrgbl.fit.budget import Budget, OUTPUT_RESERVE, SHARES
     now = time.perf_counter()
-    late = Budget(8.0, now - (480.0 - 100.0))       # 100 s left
-    early = Budget(8.0, now - (480.0 - 300.0))      # 300 s left
-    assert not late.sun_trial_fits() and early.sun_trial_fits()
-    # The trial's own start and scores (estimated as what freezing took)
-    # must leave stage 2 half its share: KITTI at 8 minutes had its whole
-    # share (144 s) left, freezing had taken 85 s, and the trial took 126 s.
-    just = Budget(8.0, now - (480.0 - 170.0))       # stage 2's share and a second left
-    assert just.sun_trial_fits() and not just.sun_trial_fits(85.0)
-    assert early.sun_trial_fits(85.0) and not early.sun_trial_fits(200.0)
-    assert late.stage2_left() == pytest.approx(100.0 - OUTPUT_RESERVE * 480.0, abs=1.0)
+    share = SHARES["stage 2"] * 480.0                       # 144 s
+    reserve = OUTPUT_RESERVE * 480.0
+    late = Budget(8.0, now - (480.0 - (reserve + share / 3 + share / 4 - 5)))
+    street = Budget(8.0, now - (480.0 - (reserve + 87.0)))  # the street at 8 minutes
+    early = Budget(8.0, now - (480.0 - 300.0))              # 300 s left
+    assert late.stage2_left() == pytest.approx(share / 3 + share / 4 - 5, abs=1.0)
+    assert not late.sun_trial_fits() and street.sun_trial_fits() and early.sun_trial_fits()
+    # A start that would eat more than three quarters of the trial's limit
+    # (48 s here) leaves the candidates too few steps: no trial however much
+    # time is left (the street's start took 21 s, KITTI's before the sky
+    # stopped being re-traced 53-62 s).
+    assert street.sun_trial_fits(21.0) and early.sun_trial_fits(35.0)
+    assert not early.sun_trial_fits(40.0) and not street.sun_trial_fits(85.0)
 
+
+@pytest.mark.slow   # (40-50 s each on 2 cores: real budgeted fits)
+def test_no_sun_trial_where_stage2_is_short(scene_path, tmp_path, monkeypatch):
+    # Where the budget cannot afford the trial the sun test's decision
+    # stands and stage 2 gets the time.
+    from mi_invrgbl.fit import runner
     monkeypatch.setattr(runner, "choose_lighting", narrow_sun_rejection(runner.choose_lighting))
     monkeypatch.setattr(runner.Budget, "sun_trial_fits", lambda self, *a: False)
     trials = []

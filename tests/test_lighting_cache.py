@@ -127,3 +127,30 @@ def test_retrace_turned_keeps_visibility_finite_for_degenerate_normals():
     vis = np.array(cache.sky_visibility)
     assert np.all(np.isfinite(vis)) and vis.min() >= 0 and vis.max() <= 1 + 1e-6
     dr.eval()
+
+
+def test_moving_the_sun_retraces_the_lights_not_the_sky():
+    # The sun trial and the start's candidates switch the sun back and forth;
+    # each switch must not pay for the sky's G x M shadow rays again, and the
+    # lights' visibility must be what a fresh cache traces for the new sun.
+    scene = mi.load_dict(gaussian_corner(1, samples=8))
+    nodes = hitlib.gaussian_nodes(scene)
+    cache = LightingCache()
+    GaussianLighting(scene, nodes, 8, cache, bounces=1)
+    sky, target = cache.sky_visibility, cache.bounce_target
+    lit_before = np.array(cache.light_visibility[0])
+    params = mi.traverse(scene)
+    key = [k for k in params.keys() if k.endswith("sun_direction")][0]
+    params[key] = mi.Vector3f(-0.6, 0.3, 0.5)   # lights the wall's back: its front in shadow
+    params.update()
+    moved = GaussianLighting(scene, nodes, 8, cache, bounces=1)
+    assert cache.sky_visibility is sky and cache.bounce_target is target
+    fresh = LightingCache()
+    reference = GaussianLighting(scene, nodes, 8, fresh, bounces=1)
+    lit = np.array(cache.light_visibility[0])
+    assert np.mean(np.abs(lit - lit_before) > 0.5) > 0.05       # the sun did move
+    np.testing.assert_allclose(lit, np.array(fresh.light_visibility[0]), atol=1e-5)
+    np.testing.assert_allclose(np.array(moved.diffuse), np.array(reference.diffuse), atol=1e-5)
+    # Stored sun visibility (a learned field) leaves the sky's trace alone too.
+    GaussianLighting(scene, nodes, 8, cache, trace_sun=False, bounces=1)
+    assert cache.sky_visibility is sky and cache.light_visibility == [None]

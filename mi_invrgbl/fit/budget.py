@@ -334,12 +334,21 @@ def time_iterations(step, first, count=TIMED):
     return (time.perf_counter() - t) / count
 
 
-#: Under a budget the sun trial's steps take at most this part of stage 2's
-#: share (both candidates together): at 100 iterations each it once took
-#: 221 s of an 8-minute KITTI fit and left stage 2 none of its 144 s...
+#: Under a budget the sun trial (the sun's start and both candidates' steps)
+#: takes at most this part of stage 2's share: at 100 iterations each it once
+#: took 221 s of an 8-minute KITTI fit and left stage 2 none of its 144 s...
 SUN_TRIAL_STEPS = 1.0 / 3.0
-#: ...and the part stage 2 must keep after the trial for it to run.
-SUN_TRIAL_KEEP = 0.5
+#: ...of which the sun's start may take this part, so that both candidates
+#: get steps to be told apart by (on the street's 8-minute fit the two
+#: starts scored 28.52 and 28.62 dB on the validation frames, and after two
+#: steps each 28.14 and 28.59)...
+SUN_TRIAL_START = 0.75
+#: ...and the part of its share stage 2 must keep after the trial for it to
+#: run. On the street at 8 minutes the steps between the stages leave stage 2
+#: about 60 % of its share (87 of 144 s): a trial of a third of the share
+#: leaves it a quarter, about 100 steps, and under the true sun stage 2's
+#: validation PSNR rose 0.3 dB in its first 40.
+SUN_TRIAL_KEEP = 0.25
 
 #: Share of the budget kept for the outputs after stage 2.
 OUTPUT_RESERVE = 0.05
@@ -366,24 +375,24 @@ class Budget:
         (:data:`OUTPUT_RESERVE` of the budget)."""
         return self.left() - OUTPUT_RESERVE * 60.0 * self.minutes
 
-    def sun_trial_fits(self, freeze_seconds=0.0) -> bool:
-        """Whether stage 2 can afford the sun trial: it still has its share
-        (:data:`SHARES`), and after the trial (a third of that share in
-        steps, plus its fixed costs, estimated as what freezing took,
-        ``freeze_seconds``) it keeps :data:`SUN_TRIAL_KEEP` of it. The
-        trial's start (the other lighting's shading, from every direction
-        the lighting kept) and its two validation scores cost about a
-        minute each way on the KITTI excerpt on 2 cores, whatever its
-        iterations: an 8-minute fit whose stage 2 had 100 s left ran one
-        trial iteration per candidate in 134 s and left stage 2 none; with
-        its whole share (144 s) left, another took 126 s (the start 53 s;
-        freezing had taken 85 s), stage 2 had none and the fit ended 1.5 dB
-        below stage 1, where the same budget without the trial ended 0.2 dB
-        above it."""
+    def sun_trial_fits(self, start_seconds=0.0) -> bool:
+        """Whether stage 2 can afford the sun trial: its limit
+        (:data:`SUN_TRIAL_STEPS` of stage 2's share) holds the sun's start
+        with room for steps (the start, estimated as ``start_seconds``, what
+        the first start took, is at most :data:`SUN_TRIAL_START` of it), and
+        after it stage 2 keeps :data:`SUN_TRIAL_KEEP` of its share.
+
+        The trial's start and its two validation scores cost the same however
+        few its steps. Before a moved sun stopped re-tracing the sky's
+        visibility (:class:`~mi_invrgbl.physics.lighting.LightingCache`),
+        one step per candidate took 134 s of an 8-minute KITTI fit whose
+        stage 2 had 100 s left, and left stage 2 none; on the street's
+        8-minute fit the trial with two steps each took 77 s, 52 of them
+        three sky traces, and takes 23 s without them (the sun's start 21 s)."""
         share = self.share("stage 2")
-        trial = freeze_seconds + SUN_TRIAL_STEPS * share
-        left = self.stage2_left()
-        return left >= share and left - trial >= SUN_TRIAL_KEEP * share
+        limit = SUN_TRIAL_STEPS * share
+        return (start_seconds <= SUN_TRIAL_START * limit
+                and self.stage2_left() - limit >= SUN_TRIAL_KEEP * share)
 
 
 #: A fit more than this fraction past its budget says where the time went.

@@ -99,12 +99,12 @@ def run_fit(scene_path, config: FitConfig, log=print):
             # (A fit resumed from stage 2's first checkpoint keeps the test's
             # decision: the trial needs the lighting choice of this run.)
             alternative = sun_alternative(state, lighting)
-        froze = state.times.get("freeze", 0.0)
-        if alternative is not None and budget is not None and not budget.sun_trial_fits(froze):
+        started = state.selection.get("shading_init", {}).get("seconds", 0.0)
+        if alternative is not None and budget is not None and not budget.sun_trial_fits(started):
             state.log("[fit] sun trial skipped: stage 2 has %.0f s of its %.0f s share left, too "
-                      "little for the trial's steps and its start (about what freezing took, "
-                      "%.0f s); the sun test's decision stands"
-                      % (budget.stage2_left(), budget.share("stage 2"), froze))
+                      "little for the trial's steps and its start (about what the first start "
+                      "took, %.0f s); the sun test's decision stands"
+                      % (budget.stage2_left(), budget.share("stage 2"), started))
             state.selection["sun"]["trial"] = {"skipped": True,
                                                "stage2_seconds_left": round(budget.stage2_left(), 1)}
             alternative = None
@@ -494,6 +494,9 @@ def freeze(state: FitState, initialise):
         init_materials(state, frozen)
     t = time.perf_counter()
     stage2 = start_stage2(state, frozen, initialise)
+    if initialise:
+        # (What a start under the lighting takes: the sun trial's estimate of its own.)
+        state.selection["shading_init"]["seconds"] = time.perf_counter() - t
     # Trace the per-Gaussian visibility of every sky pattern now (it is
     # cached on first use), so that it is counted here and not in the first
     # stage-2 iterations, which a budget times to plan the stage (tracing
