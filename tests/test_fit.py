@@ -285,6 +285,8 @@ def test_sun_visibility_learned_or_traced(scene_path, tmp_path, mode):
                       log=lambda *a: None)
     init = metrics["selection"]["shading_init"]
     assert np.all(np.isfinite(init["sun_irradiance"])) and min(init["sun_irradiance"]) > 0
+    # What the start took: the sun trial's estimate of its own start.
+    assert 0 < init["seconds"] < metrics["times_s"]["freeze"]
     text = (out / "scene.xml").read_text()
     assert ('name="sun_visibility" value="attribute"' in text) == (mode == "learn")
     assert 'name="shadowing" value="%s"' % shadowing in text
