@@ -494,9 +494,6 @@ def freeze(state: FitState, initialise):
         init_materials(state, frozen)
     t = time.perf_counter()
     stage2 = start_stage2(state, frozen, initialise)
-    if initialise:
-        # (What a start under the lighting takes: the sun trial's estimate of its own.)
-        state.selection["shading_init"]["seconds"] = time.perf_counter() - t
     # Trace the per-Gaussian visibility of every sky pattern now (it is
     # cached on first use), so that it is counted here and not in the first
     # stage-2 iterations, which a budget times to plan the stage (tracing
@@ -514,10 +511,13 @@ def freeze(state: FitState, initialise):
 def start_stage2(state: FitState, frozen, initialise=True):
     """Stage 2 on the frozen geometry under the scene's current lighting;
     with ``initialise``, its starting shading (:meth:`Stage2.init_shading`)."""
+    t = time.perf_counter()
     stage2 = Stage2(state, frozen)
     state.sun_visibility_learned = stage2.learn_sun_visibility
     if initialise:
         si = state.selection["shading_init"] = stage2.init_shading()
+        # (What a start takes: the sun trial's estimate of its own start.)
+        si["seconds"] = time.perf_counter() - t
         if "sun_irradiance" in si:
             source = si.get("sun_irradiance_from", "facings")
             state.log("[fit] sun irradiance %s from %s (%d facings with sunlit and shadowed "
