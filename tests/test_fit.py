@@ -1132,8 +1132,8 @@ def test_sun_trial_keeps_to_its_share_of_a_budget(scene_path, tmp_path, monkeypa
     metrics = run_fit(scene_path, small_config(tmp_path, budget_minutes=budget, eval_every=5,
                                                sun_trial_iterations=100000), log=lambda *a: None)
     t = metrics["selection"]["sun"]["trial"]
-    from mi_invrgbl.fit.budget import SHARES
-    limit = runner.SUN_TRIAL_STEPS * SHARES["stage 2"] * 60 * budget
+    from mi_invrgbl.fit.budget import SHARES, SUN_TRIAL_STEPS
+    limit = SUN_TRIAL_STEPS * SHARES["stage 2"] * 60 * budget
     assert 0 < t["iterations"] < 100000
     # The sun's start is counted within the limit; the rest is split between
     # the two candidates' steps (plus scoring both and one step past a deadline).

@@ -389,10 +389,14 @@ class Budget:
         stage 2 had 100 s left, and left stage 2 none; on the street's
         8-minute fit the trial with two steps each took 77 s, 52 of them
         three sky traces, and takes 23 s without them (the sun's start 21 s)."""
-        share = self.share("stage 2")
-        limit = SUN_TRIAL_STEPS * share
+        limit = self.sun_trial_limit()
         return (start_seconds <= SUN_TRIAL_START * limit
-                and self.stage2_left() - limit >= SUN_TRIAL_KEEP * share)
+                and self.stage2_left() - limit >= SUN_TRIAL_KEEP * self.share("stage 2"))
+
+    def sun_trial_limit(self) -> float:
+        """Seconds the sun trial may take, its start included
+        (:data:`SUN_TRIAL_STEPS` of stage 2's share)."""
+        return SUN_TRIAL_STEPS * self.share("stage 2")
 
 
 #: A fit more than this fraction past its budget says where the time went.

@@ -36,7 +36,7 @@ import mitsuba as mi
 
 from . import outputs
 from ..physics.host_arrays import jit_array
-from .budget import (OUTPUT_RESERVE, SUN_TRIAL_STEPS, TIMED, Budget, EarlyStop, Replan,
+from .budget import (OUTPUT_RESERVE, TIMED, Budget, EarlyStop, Replan,
                      overrun_report, plan_stage, position_lr_factor, probe_batch_scale,
                      PLATEAU_LR_FACTOR, PLATEAU_REDUCTIONS, VALIDATION_SHARE, anneal_lr_factor,
                      small_budget_warning, stage1_seconds, stage_progress, time_iterations,
@@ -113,7 +113,7 @@ def run_fit(scene_path, config: FitConfig, log=print):
             # count, so it never runs more than the stage would.
             start = config.sun_trial_iterations if budget is not None else \
                 min(config.sun_trial_iterations, config.stage2_iterations)
-            limit = None if budget is None else SUN_TRIAL_STEPS * budget.share("stage 2")
+            limit = None if budget is None else budget.sun_trial_limit()
             try:
                 stage2, start = sun_trial(state, frozen, stage2, lighting, alternative, start, limit)
             except KeyboardInterrupt:
