@@ -154,3 +154,26 @@ def test_moving_the_sun_retraces_the_lights_not_the_sky():
     # Stored sun visibility (a learned field) leaves the sky's trace alone too.
     GaussianLighting(scene, nodes, 8, cache, trace_sun=False, bounces=1)
     assert cache.sky_visibility is sky and cache.light_visibility == [None]
+
+
+def test_switching_the_sun_off_and_on_keeps_the_sky_and_retraces_the_sun():
+    # The sun trial switches between no sun (irradiance 0: the emitter
+    # drops its sun) and a sun: the lights' visibility follows each switch,
+    # the sky's is traced once.
+    scene = mi.load_dict(gaussian_corner(1, samples=8))
+    nodes = hitlib.gaussian_nodes(scene)
+    cache = LightingCache()
+    GaussianLighting(scene, nodes, 8, cache, bounces=1)
+    sky, lit = cache.sky_visibility, np.array(cache.light_visibility[0])
+    params = mi.traverse(scene)
+    key = [k for k in params.keys() if k.endswith("sun_irradiance")][0]
+    on = mi.Color3f(params[key])
+    params[key] = mi.Color3f(0.0)
+    params.update()
+    off = GaussianLighting(scene, nodes, 8, cache, bounces=1)
+    assert cache.sky_visibility is sky and cache.light_visibility == [] and off.light_irr == []
+    params[key] = on
+    params.update()
+    GaussianLighting(scene, nodes, 8, cache, bounces=1)
+    assert cache.sky_visibility is sky
+    np.testing.assert_allclose(np.array(cache.light_visibility[0]), lit, atol=1e-5)
