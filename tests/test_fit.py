@@ -962,6 +962,24 @@ def test_stage1_plan_and_replan_stop_at_the_step_cap():
     assert r(104, total) == total      # a cap below the plan never shortens it
 
 
+def test_stage2_scores_its_validation_frames_at_most_every_interval():
+    # Stage 2's plateau test waits PATIENCE scores: a long plan (60 minutes:
+    # 6 000 steps) scores every STAGE2_EVAL_INTERVAL steps, not every 500,
+    # so it waits as many steps as a short one; a short plan keeps its twelfth.
+    from mi_invrgbl.fit.budget import (EVALUATIONS, MIN_EVAL_INTERVAL, STAGE2_EVAL_INTERVAL,
+                                       plan_stage)
+    long = plan_stage("stage 2", 2200.0, 0.36, done=4, batched=False,
+                      longest_interval=STAGE2_EVAL_INTERVAL)
+    assert long.iterations == 4 + int(2200.0 / 0.36)
+    assert long.eval_every == STAGE2_EVAL_INTERVAL < long.iterations // EVALUATIONS
+    short = plan_stage("stage 2", 100.0, 0.36, done=4, batched=False,
+                       longest_interval=STAGE2_EVAL_INTERVAL)
+    assert short.eval_every == short.iterations // EVALUATIONS < STAGE2_EVAL_INTERVAL
+    assert plan_stage("stage 2", 2200.0, 0.36, batched=False).eval_every == 6111 // EVALUATIONS
+    assert plan_stage("stage 2", 10.0, 0.36, batched=False,
+                      longest_interval=1).eval_every == MIN_EVAL_INTERVAL
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("slow", [4.0])
 def test_budget_retimes_a_stage_planned_from_busy_steps(scene_path, tmp_path, monkeypatch, slow):
@@ -1049,13 +1067,22 @@ def test_budgeted_stage1_stops_at_the_step_cap(scene_path, tmp_path, monkeypatch
     # The runner plans and re-plans stage 1 under STAGE1_MAX_STEPS (here 12,
     # far below what the share holds): stage 1 ends at the cap, records what
     # the share held, and says so; stage 2 still runs.
+    # Stage 2 is planned with scores at most STAGE2_EVAL_INTERVAL steps apart.
     from mi_invrgbl.fit import runner
     monkeypatch.setattr(runner, "STAGE1_MAX_STEPS", 12)
+    planned = {}
+
+    def plan_stage(name, *args, **kwargs):
+        planned[name] = kwargs
+        return budget_plan_stage(name, *args, **kwargs)
+    budget_plan_stage = runner.plan_stage
+    monkeypatch.setattr(runner, "plan_stage", plan_stage)
     lines = []
     metrics = run_fit(scene_path, small_config(tmp_path, budget_minutes=0.6, eval_every=5),
                       log=lines.append)
     plan = metrics["selection"]["budget"]["stage 1"]
     print(plan)
+    assert planned["stage 2"]["longest_interval"] == runner.STAGE2_EVAL_INTERVAL
     assert plan["iterations"] == 12 and plan["uncapped_iterations"] > 12
     assert metrics["iterations"]["stage 1"] <= 12
     assert any("stage 1 takes 12 steps" in str(x) for x in lines)

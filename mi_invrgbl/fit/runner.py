@@ -40,7 +40,7 @@ from .budget import (OUTPUT_RESERVE, TIMED, Budget, EarlyStop, Replan,
                      overrun_report, plan_stage, position_lr_factor, probe_batch_scale,
                      PLATEAU_LR_FACTOR, PLATEAU_REDUCTIONS, VALIDATION_SHARE, anneal_lr_factor,
                      small_budget_warning, stage1_seconds, stage_progress, time_iterations,
-                     STAGE1_MAX_STEPS,
+                     STAGE1_MAX_STEPS, STAGE2_EVAL_INTERVAL,
                      fixed_costs, resumed_plan, resumed_progress)
 from .checkpoint import checkpoint_path, fingerprint, load_checkpoint, save_checkpoint
 from .config import FitConfig  # noqa: F401  (the fit's options, imported from here by callers)
@@ -296,7 +296,8 @@ def fit_materials(state: FitState, stage2, start, checkpoint, budget=None, fresh
         # 500 s before the budget's end).
         reserve = state.config.lobe_iterations * spi + OUTPUT_RESERVE * 60 * budget.minutes
         seconds = max(0.0, budget.left() - reserve)
-        plan = plan_stage("stage 2", seconds, spi, done=start, batched=False)
+        plan = plan_stage("stage 2", seconds, spi, done=start, batched=False,
+                          longest_interval=STAGE2_EVAL_INTERVAL)
         if seconds < budget.share("stage 2"):
             state.log("[fit] budget: stage 2 gets %.0f of its %.0f s (the fixed costs so far took "
                       "%.0f s; a larger --budget gives it its share)"
