@@ -306,7 +306,9 @@ def table(rows) -> str:
 #: One colour per variant (this run's first), BGR; cases are told apart by
 #: their place on the axes and the label at each curve's end.
 PALETTE = [(190, 80, 10), (20, 110, 235), (40, 150, 40), (150, 40, 150), (110, 110, 110),
-           (20, 170, 200)]
+           (20, 170, 200), (40, 40, 200), (140, 140, 0), (0, 0, 0), (200, 150, 120)]
+#: Width of the legend strip; longer legends wrap onto more lines.
+LEGEND_WIDTH = 1080
 #: Wall times span a GPU's seconds to the 2-core machine's hour: a log axis.
 X_TICKS = [0.5, 1, 2, 5, 10, 20, 50, 100, 200]
 
@@ -382,12 +384,20 @@ def plot(rows, path: Path):
     import cv2
     import numpy as np
 
-    img = np.full((420, 1180, 3), 255, np.uint8)
+    variants = list(dict.fromkeys(r.variant for r in rows))
+    # The legend's entries, placed left to right and wrapped (one line each 22 px).
+    places, x, line = [], 0, 0
+    for v in variants:
+        width = 40 + 9 * len(v)
+        if x and x + width > LEGEND_WIDTH:
+            x, line = 0, line + 1
+        places.append((70 + x, 385 + 22 * line))
+        x += width
+    img = np.full((420 + 22 * line, 1180, 3), 255, np.uint8)
     walls = [r.wall_s / 60 for r in rows if r.wall_s]
     xlim = (min(walls + [1.0]) / 1.5, max(walls + [1.0]) * 1.5)
     psnr, intensity, materials = [], [], []
     # In the order the rows came: this run's (or the first --merge file's) first.
-    variants = list(dict.fromkeys(r.variant for r in rows))
     colours = {v: PALETTE[k % len(PALETTE)] for k, v in enumerate(variants)}
     for case in CASES:
         for variant in variants:
@@ -410,12 +420,11 @@ def plot(rows, path: Path):
     _panel(img, 850, 40, 300, 270, materials, "street: albedo RMSE, normal err [deg]/100",
            "", xlim)
     # Legend strip: the variants' colours, then what the dashed lines are.
-    x, y = 70, 385
-    for v in variants:
+    for v, (x, y) in zip(variants, places):
         cv2.line(img, (x, y - 4), (x + 24, y - 4), colours[v], 2, cv2.LINE_AA)
         cv2.putText(img, v, (x + 30, y), cv2.FONT_HERSHEY_SIMPLEX, 0.42, colours[v], 1,
                     cv2.LINE_AA)
-        x += 40 + 9 * len(v)
+    y = 385 + 22 * line
     cv2.putText(img, "dashed, hollow: nearest-neighbour lookup baseline (nearest training image; "
                 "every training LiDAR point)", (70, y + 24), cv2.FONT_HERSHEY_SIMPLEX, 0.42,
                 (60, 60, 60), 1, cv2.LINE_AA)

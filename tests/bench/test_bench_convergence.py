@@ -39,6 +39,24 @@ def test_table_and_plot(tmp_path):
         assert np.any(np.all(img == np.array(bgr, np.uint8), axis=2))
 
 
+def test_plot_legend_wraps_and_keeps_colours_apart(tmp_path):
+    # Nine merged variants (a release's own and eight tagged records): each
+    # gets its own colour, and the legend wraps onto a second line, which
+    # the image grows to hold, instead of running off its right edge.
+    import cv2
+
+    names = ["llvm_ad_rgb"] + ["tag%d-llvm_ad_rgb" % k for k in range(8)]
+    rows = [bc.Row("street", 8, 200, 300, False, 23.0 + 0.1 * k, 0.6, 0.2, 15.0, 21.0, 0.08,
+                   0.12, 3100, 480 + 10 * k, v) for k, v in enumerate(names)]
+    assert len(set(bc.PALETTE[:len(names)])) == len(names)
+    bc.plot(rows, tmp_path / "p.png")
+    img = cv2.imread(str(tmp_path / "p.png"))
+    assert img is not None and img.shape[0] > 420 and img.shape[1] == 1180
+    # The last variant's legend entry sits on the added line.
+    last = np.all(img[420 - 20:, :] == np.array(bc.PALETTE[len(names) - 1], np.uint8), axis=2)
+    assert np.any(last)
+
+
 def test_over_budget_marks_only_runs_past_the_tolerance():
     assert not bc.ran_over(2, 120.0 * (1 + bc.OVER_TOLERANCE) - 1)
     assert bc.ran_over(2, 252.0)          # KITTI at 2 minutes on 2 cores
