@@ -1089,6 +1089,32 @@ def test_budgeted_stage1_stops_at_the_step_cap(scene_path, tmp_path, monkeypatch
     assert metrics["iterations"]["stage 2"] > 0 and np.isfinite(metrics["heldout_psnr"])
 
 
+@pytest.mark.slow
+def test_a_stage_that_goes_back_logs_the_state_it_keeps(scene_path, tmp_path, monkeypatch):
+    # A budgeted stage that goes back to its best validation state logs one
+    # more row at its last iteration, scored on the kept state, and
+    # metrics.json's held-out score is that row's (not the state it left).
+    import csv
+    from mi_invrgbl.fit import runner
+    went_back = []
+
+    def back_to_the_first_kept(self, restore, it, name):
+        if self.best_state is None:
+            return False
+        restore(self.best_state)
+        went_back.append(name)
+        return True
+    monkeypatch.setattr(runner.ValidationStop, "restore_best", back_to_the_first_kept)
+    metrics = run_fit(scene_path, small_config(tmp_path, budget_minutes=0.6, eval_every=5),
+                      log=lambda *a: None)
+    rows = list(csv.DictReader(open(tmp_path / "log.csv")))
+    assert went_back
+    for stage in set(went_back):
+        its = [int(r["iteration"]) for r in rows if r["stage"] == stage]
+        assert its[-1] == its[-2] == metrics["iterations"][stage], (stage, its[-4:])
+    assert metrics["heldout_psnr"] == pytest.approx(float(rows[-1]["heldout_psnr"]), abs=1e-3)
+
+
 def test_stage2_start_is_restored_exactly(scene_path, tmp_path):
     # The sun trial runs a second candidate from the same start and may go
     # back to the first: every node value, the step sizes, the shading start

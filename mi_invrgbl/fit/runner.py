@@ -226,8 +226,11 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
                   "of the stage)" % (start, total, 100 * then))
     if total > start:
         last = train(state, run, start, total)
-        if isinstance(run.stop, ValidationStop):
-            run.stop.restore_best(s1.restore, last, "stage 1")
+        if isinstance(run.stop, ValidationStop) and run.stop.restore_best(s1.restore, last,
+                                                                          "stage 1"):
+            # The log's last row (and metrics.json's held-out score) is the
+            # state the stage keeps, not the one it went back from.
+            record_point(state, run, last)
     if config.prune_sky_lookalikes:
         t = time.perf_counter()
         removed = s1.prune_sky_lookalikes()
@@ -323,9 +326,11 @@ def fit_materials(state: FitState, stage2, start, checkpoint, budget=None, fresh
         state.log("[fit] budget: stage 2 resumed at iteration %d of %d" % (start, total))
     if total > start:
         last = train(state, run, start, total)
-        if isinstance(run.stop, ValidationStop):
-            run.stop.restore_best(stage2.restore, last, "stage 2")
+        back = isinstance(run.stop, ValidationStop) and run.stop.restore_best(
+            stage2.restore, last, "stage 2")
         follow_normals(state, stage2)
+        if back:   # as in stage 1: the last row scores the kept state
+            record_point(state, run, last)
         return last
     if fresh and start > 0:
         # The sun trial ran every iteration the stage had (an unbudgeted
