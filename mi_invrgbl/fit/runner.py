@@ -226,11 +226,7 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
                   "of the stage)" % (start, total, 100 * then))
     if total > start:
         last = train(state, run, start, total)
-        if isinstance(run.stop, ValidationStop) and run.stop.restore_best(s1.restore, last,
-                                                                          "stage 1"):
-            # The log's last row (and metrics.json's held-out score) is the
-            # state the stage keeps, not the one it went back from.
-            record_point(state, run, last)
+        keep_best(state, run, s1.restore, last)
     if config.prune_sky_lookalikes:
         t = time.perf_counter()
         removed = s1.prune_sky_lookalikes()
@@ -326,11 +322,7 @@ def fit_materials(state: FitState, stage2, start, checkpoint, budget=None, fresh
         state.log("[fit] budget: stage 2 resumed at iteration %d of %d" % (start, total))
     if total > start:
         last = train(state, run, start, total)
-        back = isinstance(run.stop, ValidationStop) and run.stop.restore_best(
-            stage2.restore, last, "stage 2")
-        follow_normals(state, stage2)
-        if back:   # as in stage 1: the last row scores the kept state
-            record_point(state, run, last)
+        keep_best(state, run, stage2.restore, last, settle=lambda: follow_normals(state, stage2))
         return last
     if fresh and start > 0:
         # The sun trial ran every iteration the stage had (an unbudgeted
@@ -341,6 +333,21 @@ def fit_materials(state: FitState, stage2, start, checkpoint, budget=None, fresh
         state.iterations["stage 2"] = start
     follow_normals(state, stage2)
     return max(start, total)
+
+
+def keep_best(state: FitState, run: StageRun, restore, last, settle=None):
+    """A budgeted stage's end: back to its best validation state where that
+    scores higher (:meth:`ValidationStop.restore_best`), then ``settle()``
+    (stage 2's lighting follows the kept normals), and where it went back,
+    one more log row at ``last`` scored on the kept state, so that the log's
+    last row and metrics.json's held-out score describe what the stage keeps,
+    not the state it left."""
+    back = isinstance(run.stop, ValidationStop) and run.stop.restore_best(restore, last, run.name)
+    if settle is not None:
+        settle()
+    if back:
+        record_point(state, run, last)
+    return back
 
 
 def stage2_stop(state: FitState, stage2, plan, deadline):
