@@ -518,3 +518,19 @@ def test_metrics_json_is_strict_with_non_finite_scores(tmp_path):
         raise AssertionError("non-standard JSON constant " + constant)
     path = write_json(tmp_path / "metrics.json", clean)
     assert json.loads(path.read_text(), parse_constant=refuse) == clean
+
+
+def test_a_changed_integrator_keeps_every_other_setting():
+    """eval's relighting swaps a fit's learned sun visibility for traced
+    shadows (``integrator_like``); the copy must keep the coat, the
+    shadowing term and every other setting, or the relit scene is shaded
+    with another BRDF than the one fitted."""
+    from mi_invrgbl.eval.rendering import integrator_like
+    settings = {"type": "invrgbl", "samples": 12, "bounces": 1, "max_hits": 33,
+                "min_transmittance": 0.02, "sun_visibility": "attribute", "f0": 0.05,
+                "diffuse_fresnel": True, "hide_emitters": True, "shadowing": "smith"}
+    scene = mi.load_dict({"type": "scene", "integrator": settings})
+    assert scene.integrator().settings() == settings
+    assert integrator_like(scene) is None
+    copy = integrator_like(scene, samples=7, sun_visibility="trace")
+    assert copy.settings() == dict(settings, samples=7, sun_visibility="trace")

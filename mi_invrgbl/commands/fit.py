@@ -46,8 +46,9 @@ FLAGS = (
      "shadowing-masking term of the specular lobe: Smith's GGX term, or the paper's V-cavity "
      "(about twice the specular near grazing angles)", {"choices": ("smith", "vcavity")}),
     ("--diffuse-fresnel", "diffuse_fresnel",
-     "weight the diffuse term by a dielectric coat's Fresnel transmission on the way in and "
-     "out, as Mitsuba's roughplastic does (default: the paper's plain Lambertian term)", {}),
+     "weight the diffuse term by a rough dielectric coat's transmittance on the way in and "
+     "out (GGX, the Gaussian's roughness), as Mitsuba's roughplastic does (default: the "
+     "paper's plain Lambertian term)", {}),
     ("--rgb-space", "rgb_space",
      "colour space of the camera loss in both stages: sRGB (what PSNR and the eye compare) or "
      "linear (the paper's)", {"choices": ("srgb", "linear")}),

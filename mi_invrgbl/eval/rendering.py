@@ -71,12 +71,8 @@ def integrator_like(scene, samples=None, sun_visibility=None):
     if (samples is None or samples == integ.samples) and \
             (sun_visibility is None or sun_visibility == integ.sun_visibility):
         return None
-    return mi.load_dict({"type": "invrgbl", "samples": int(samples or integ.samples),
-                         "bounces": integ.bounces, "max_hits": integ.max_hits,
-                         "min_transmittance": integ.min_transmittance,
-                         "sun_visibility": sun_visibility or integ.sun_visibility,
-                         "f0": integ.f0, "hide_emitters": integ.hide_emitters,
-                         "shadowing": integ.shadowing})
+    return mi.load_dict(dict(integ.settings(), samples=int(samples or integ.samples),
+                             sun_visibility=sun_visibility or integ.sun_visibility))
 
 
 def find_sky(scene):

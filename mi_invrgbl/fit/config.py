@@ -58,15 +58,16 @@ class FitConfig:
     #: one run each) Smith scored 0.73 and 0.09 dB higher on the validation
     #: frames and cut the roughness error from 0.32 to 0.27 and 0.31 to 0.27.
     shadowing: str = "smith"
-    #: Diffuse light through a dielectric coat (``invrgbl``'s
-    #: ``diffuse_fresnel``): the Lambertian term weighted by the Fresnel
-    #: transmission at the light's and the viewer's angle, as Mitsuba's
-    #: ``roughplastic`` weights its diffuse lobe. Off: the paper's Lambertian
-    #: term. Seen along a street the road and sidewalk are viewed about 81
-    #: degrees from their normal, where ``roughplastic`` lets 0.50-0.57 of
-    #: the diffuse light out against 0.81-0.94 on the facades, and a plain
-    #: Lambertian fit reads them about half as bright as they are (README,
-    #: "Where the albedo error sits").
+    #: Diffuse light through a rough dielectric coat (``invrgbl``'s
+    #: ``diffuse_fresnel``, :mod:`mi_invrgbl.physics.coat`): the Lambertian
+    #: term weighted by the coat's transmittance at the light's and the
+    #: viewer's angle (GGX alpha = the Gaussian's roughness) and by the light
+    #: that bounces under the coat, as Mitsuba's ``roughplastic`` weights its
+    #: diffuse lobe. Off: the paper's Lambertian term. A rough coat keeps far
+    #: less than a smooth one: at alpha 0.8-0.9 (the street's road, sidewalk
+    #: and wall) the coated lobe is 0.41-0.44 of a Lambertian one lit and seen
+    #: head-on and 0.21-0.25 seen 80 degrees from the normal, where a car's
+    #: camera sees the ground (README, "Where the albedo error sits").
     diffuse_fresnel: bool = False
     #: Colour space the camera loss compares in (``losses.RGB_SPACES``).
     #: sRGB weighs an error as the 8-bit image and PSNR do, so dark pixels

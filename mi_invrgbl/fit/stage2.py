@@ -39,7 +39,7 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
-from ..physics import brdf
+from ..physics import coat
 from ..physics import hits as hitlib
 from ..physics.colour import LUMINANCE
 from ..physics.lighting import (GaussianLighting, GaussianTable, LightingCache, light_at,
@@ -220,12 +220,22 @@ class Stage2:
         """Adam over :meth:`variables` (those ``only(handle)`` accepts, if given)."""
         self.opt = Optimizer([v for v in self.variables() if only is None or only(v)])
 
+    def model_values(self):
+        """The Gaussians' materials by key as the model holds them, without
+        the optimiser's copies. A start (:meth:`_init_shading`) sets the
+        materials and the scene's light itself before the optimiser is built
+        again: :meth:`values` would hand it the last build's roughness (which
+        the coat's transmission depends on) and write the last build's sky
+        and sun back into the scene, over the light the start has just set."""
+        model = self.ctx.model
+        return {"%s.%s" % (name, f.variable): model.nodes[name].values[f.variable]
+                for name in model.nodes for f in MATERIAL}
+
     def values(self):
         """Current variables by key (grad-enabled where optimised); the sky and
         sun are written into the scene."""
-        ctx, model = self.ctx, self.ctx.model
-        vals = {"%s.%s" % (name, f.variable): model.nodes[name].values[f.variable]
-                for name in model.nodes for f in MATERIAL}
+        ctx = self.ctx
+        vals = self.model_values()
         in_scene = False
         for var, value in self.opt.items():
             vals[var.key] = value
@@ -395,8 +405,7 @@ class Stage2:
                 for name, v in zip(names, shading_init.split_by_node(vis, table, counts)):
                     model.nodes[name].values["sun_visibility"] = jit_array(mi.Float, v)
                 sun_dir = np.array(d, np.float64).T
-            vals = self.values()
-            nodes = self.frozen.nodes(frame, vals)
+            nodes = self.frozen.nodes(frame, self.model_values())
             lighting = self.lighting(nodes, self.frozen.caches[frame.index], frame=frame)
             table = lighting.table
             D = shading_init.as_rows(lighting.diffuse_sky)
@@ -418,8 +427,10 @@ class Stage2:
                     # The render's sun term carries the coat's transmission
                     # on the way in: an effective cosine keeps the sunlit /
                     # shadowed ratios below in step with it.
-                    cos = cos * np.array(brdf.fresnel_transmission(
-                        jit_array(mi.Float, cos), ctx.camera_integrator.f0), np.float64)
+                    rough = hitlib.gather_attribute(nodes, "roughness", table.ids, table.prims,
+                                                    mi.Bool(True))
+                    cos = cos * np.array(coat.transmission(
+                        jit_array(mi.Float, cos), rough, ctx.camera_integrator.f0), np.float64)
                 rho = np.concatenate([model.nodes[n].numpy("lidar_albedo") for n in names]) \
                     if any(f.lidar is not None for f in ctx.train_frames) else None
                 # Shadowed Gaussians are lit by the sky and by what their
@@ -539,9 +550,10 @@ class Stage2:
         sends to the training cameras under the scene's current light,
         averaged with its blend weights over up to ``frames`` training frames
         spread over the sequence; 0 for Gaussians those frames do not see.
-        Returns it with, per Gaussian (a column), the mean Fresnel
-        transmission of its diffuse light towards those cameras with
-        ``transmission`` (``diffuse_fresnel``), else ones.
+        Returns it with, per Gaussian (a column), the mean coat factor of
+        its diffuse light towards those cameras
+        (:func:`~mi_invrgbl.physics.coat.way_out`) with ``transmission``
+        (``diffuse_fresnel``), else ones.
 
         The specular part of the shading does not depend on the albedo, so it
         is rendered once with the albedo at zero (no diffuse, no bounce)."""
@@ -551,12 +563,7 @@ class Stage2:
             count = sum(ctx.model.nodes[n].count for n in names)
             return np.zeros((count, 3)), np.ones((count, 1))
         pick = np.unique(np.linspace(0, len(train) - 1, min(frames, len(train))).round().astype(int))
-        # The model's values, not :meth:`values`: the optimiser still holds
-        # the sky and sun of its last build, and writing them back would undo
-        # the light the start has just set.
-        model = ctx.model
-        vals = {"%s.%s" % (n, f.variable): model.nodes[n].values[f.variable]
-                for n in model.nodes for f in MATERIAL}
+        vals = self.model_values()
         for n in names:
             key = "%s.%s" % (n, BY_NAME["albedo"].variable)
             vals[key] = dr.zeros(mi.Float, dr.width(vals[key]))
@@ -568,7 +575,7 @@ class Stage2:
                 nodes = self.frozen.nodes(f, vals)
                 lighting = self.lighting(nodes, self.frozen.cache(f), frame=f)
                 g = frozen_gaussian_hits(nodes, f.camera.rays, fh)
-                colour, _, n, _, _ = self.ctx.camera_integrator.shade_gaussian_hits(
+                colour, _, n, tau, _ = self.ctx.camera_integrator.shade_gaussian_hits(
                     lighting, nodes, f.camera.rays, fh, g)
                 gi = np.array(lighting.table.global_index(fh.node_ids, fh.prims))
                 w = np.array(fh.weight, np.float64)
@@ -583,8 +590,7 @@ class Stage2:
                     acc[:, k] += np.bincount(gi, w * c[:, k], minlength=acc.shape[0])
                 if transmission:
                     _, d = hitlib.expand_rays(f.camera.rays, fh)
-                    t = np.array(brdf.fresnel_transmission(dr.dot(n, d), lighting.f0),
-                                 np.float64)
+                    t = np.array(coat.way_out(dr.dot(n, d), tau, lighting.f0), np.float64)
                     tsum += np.bincount(gi, w * t, minlength=tsum.shape[0])
         seen = wsum > 1e-6
         spec = np.where(seen[:, None], acc / np.maximum(wsum, 1e-6)[:, None], 0.0)

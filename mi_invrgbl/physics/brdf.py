@@ -132,24 +132,6 @@ def ior_from_f0(f0):
     return (1.0 + r) / (1.0 - r)
 
 
-def fresnel_transmission(cos_theta, f0=F0_DEFAULT):
-    """``1 - F``: the share of light a smooth dielectric coat (IOR from
-    ``f0``) lets through at ``cos_theta`` from its normal, exact unpolarised
-    Fresnel; ``1 - f0`` head-on, 0 at grazing.
-
-    A coated (plastic-like) surface's diffuse light passes the coat on the
-    way in and on the way out, as Mitsuba's ``plastic`` and ``roughplastic``
-    model it; the paper's Lambertian lobe has neither factor. Seen along a
-    street, the road is viewed about 80 degrees from its normal, where the
-    way-out factor alone is about 0.5 (IOR 1.5).
-
-    Two-sided: ``|cos_theta|`` is used, since the Lambertian term it weights
-    is lit and seen from either side of a Gaussian."""
-    c = dr.clip(dr.abs(cos_theta), 0.0, 1.0)
-    f, _, _, _ = mi.fresnel(c, ior_from_f0(f0))
-    return dr.clip(1.0 - f, 0.0, 1.0)
-
-
 def eval_brdf(albedo, roughness, wi, wo, f0=F0_DEFAULT):
     """Full BRDF ``albedo / pi + f_s`` (no cosine factor); ``albedo`` may be a colour."""
     cos_i = mi.Frame3f.cos_theta(wi)

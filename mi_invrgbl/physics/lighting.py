@@ -35,7 +35,7 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
-from . import brdf
+from . import brdf, coat
 from . import hits as hitlib
 from .host_arrays import jit_array
 
@@ -368,10 +368,11 @@ class GaussianLighting:
         a trace goes through the scene as it was last pushed.
 
         ``diffuse_fresnel``: the diffuse term takes each light through a
-        dielectric coat of reflectance ``f0`` on the way in
-        (:func:`~mi_invrgbl.physics.brdf.fresnel_transmission` of its angle
-        to the normal); the way out depends on the viewer and is the
-        integrator's. The bounce light a Gaussian receives is not weighted."""
+        rough dielectric coat of reflectance ``f0`` and the Gaussian's
+        roughness on the way in (:func:`~mi_invrgbl.physics.coat.transmission`
+        of its angle to the normal); the way out depends on the viewer and is
+        the integrator's (:func:`~mi_invrgbl.physics.coat.way_out`). The
+        bounce light a Gaussian receives is not weighted."""
         self.table = GaussianTable.build(nodes)
         self.diffuse_fresnel, self.f0 = bool(diffuse_fresnel), f0
         self.samples = int(samples)
@@ -430,9 +431,14 @@ class GaussianLighting:
         # v_i L_sky(w_i): differentiable in the sky's coefficients and normals.
         self.sky_radiance = environment_radiance(scene, self.sky_dirs) * cache.sky_visibility
         sky_in = self.sky_radiance
+        coat_roughness = None
+        if diffuse_fresnel:
+            coat_roughness = hitlib.gather_attribute(nodes, "roughness", table.ids, table.prims,
+                                                     mi.Bool(True))
         if diffuse_fresnel and M:
             # The samples' local z is their cosine to the normal.
-            sky_in = sky_in * brdf.fresnel_transmission(local.z, f0)
+            sky_in = sky_in * coat.transmission(
+                local.z, dr.gather(mi.Float, coat_roughness, dr.arange(mi.UInt32, G * M) // M), f0)
         self.diffuse_sky = mi.Color3f(*[dr.block_sum(sky_in[c], M) / M for c in range(3)]) \
             if M else dr.zeros(mi.Color3f, G)
         self.light_dir, self.light_irr = [], []
@@ -449,7 +455,7 @@ class GaussianLighting:
         for d_l, e_l in zip(self.light_dir, self.light_irr):
             cos_l = dr.maximum(dr.dot(table.normal, d_l), 0.0)
             if diffuse_fresnel:
-                cos_l = cos_l * brdf.fresnel_transmission(cos_l, f0)
+                cos_l = cos_l * coat.transmission(cos_l, coat_roughness, f0)
             self.direct += e_l * cos_l * dr.inv_pi
         self.indirect = self.bounce_light(nodes) if self.bounces > 0 else dr.zeros(mi.Color3f, G)
         self.diffuse = self.direct + self.indirect

@@ -5,7 +5,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ..physics import brdf, hits as hitlib
+from ..physics import brdf, coat, hits as hitlib
 from ..physics.lighting import (MAX_BOUNCES, GaussianLighting, LightingCache,
                                 fibonacci_direction, hash_rotation_of, transmittance)
 
@@ -56,12 +56,13 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
          grazing, see :mod:`mi_invrgbl.physics.brdf`). (Default: ``vcavity``)
      * - diffuse_fresnel
        - |bool|
-       - The diffuse light passes a dielectric coat of reflectance ``f0`` on
-         the way in and out: the Lambertian term is weighted by the coat's
-         Fresnel transmission ``1 - F`` at the light's and at the viewer's
-         angle, as Mitsuba's ``roughplastic`` weights its diffuse lobe
-         (:func:`~mi_invrgbl.physics.brdf.fresnel_transmission`). false: the
-         paper's plain Lambertian term. (Default: false)
+       - The diffuse light passes a rough dielectric coat (reflectance
+         ``f0``, GGX alpha = the Gaussian's roughness) on the way in and out:
+         the Lambertian term is weighted by the coat's transmittance at the
+         light's and at the viewer's angle and by the light that bounces
+         under it, as Mitsuba's ``roughplastic`` weights its diffuse lobe
+         (:mod:`mi_invrgbl.physics.coat`). false: the paper's plain
+         Lambertian term. (Default: false)
      * - hide_emitters
        - |bool|
        - Show the background as black instead of the sky. (Default: false)
@@ -133,6 +134,17 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
             raise ValueError("invrgbl: sun_visibility must be 'trace' or 'attribute'")
         self.cache = LightingCache()
 
+    def settings(self):
+        """Every parameter of this integrator as a ``mi.load_dict``
+        dictionary: a copy with some replaced (eval's relighting traces the
+        sun's shadows of a fit that learned them) keeps the rest, the coat
+        and the shadowing term included."""
+        return {"type": "invrgbl", "samples": self.samples, "bounces": self.bounces,
+                "max_hits": self.max_hits, "min_transmittance": self.min_transmittance,
+                "sun_visibility": self.sun_visibility, "f0": self.f0,
+                "diffuse_fresnel": self.diffuse_fresnel, "hide_emitters": self.hide_emitters,
+                "shadowing": self.shadowing}
+
     def aov_names(self):
         return list(AOV_NAMES)
 
@@ -174,8 +186,8 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
             # Diffuse light leaves through the coat too (the way in is in
             # the lighting's diffuse term); the transmission is two-sided,
             # as the diffuse term is lit whichever side the viewer is on.
-            irradiance_pi = irradiance_pi * brdf.fresnel_transmission(
-                mi.Frame3f.cos_theta(wo), lighting.f0)
+            irradiance_pi = irradiance_pi * coat.way_out(mi.Frame3f.cos_theta(wo), tau,
+                                                         lighting.f0)
         colour = albedo * irradiance_pi + specular
         colour = dr.select(active & dr.all(dr.isfinite(colour)), colour, 0.0)
         return colour, albedo, n, tau, rho_l

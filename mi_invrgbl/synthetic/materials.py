@@ -4,8 +4,11 @@ Each mesh of the street carries exactly one :class:`Material`. By default the
 renders use Mitsuba's stock ``roughplastic`` BSDF (GGX with ``alpha = roughness``, inner
 IOR 1.5 so that its Fresnel reflectance at normal incidence is 0.04 = ``f0``):
 it has the paper's two lobes, a Lambertian base of albedo ``albedo`` and a
-GGX specular coat. (Its diffuse lobe is additionally scaled by the coat's
-Fresnel transmission in and out and by ``1 / eta^2``, about 0.4 in all, and its
+GGX specular coat. (Its diffuse lobe is additionally scaled by the rough
+coat's transmittance in and out and by the light recycled under the coat,
+which depend on the roughness: 0.97 of a Lambertian lobe lit and seen
+head-on at alpha 0.05, 0.44 at alpha 0.8, and less towards grazing angles;
+``fit --diffuse-fresnel`` models it, see :mod:`mi_invrgbl.physics.coat`. Its
 Smith shadowing dims the specular lobe at grazing angles more than the
 paper's V-cavity term does; the recorded ``albedo`` is the BSDF's
 ``diffuse_reflectance``, the value a fit should recover up to scale.)
