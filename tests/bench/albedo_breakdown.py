@@ -9,7 +9,8 @@ least-squares factor over all scored pixels pooled (``eval`` fits one per
 frame), then the error is split by the ground truth's mesh: each material's
 share of pixels, its true and fitted (scaled) mean albedo, its RMSE, its share
 of the squared error, its median normal error and share of the summed normal
-error, and the true sun visibility there. A row whose fitted albedo is far darker than the truth while the truth
+error, its true and fitted median roughness, and the true sun visibility
+there. A row whose fitted albedo is far darker than the truth while the truth
 says the material is in shadow is shading the fit credits to the wrong light;
 a constant albedo (every pixel at the true mean) is printed for scale.
 """
@@ -53,7 +54,7 @@ def collect(fit, frames_spec):
     scene = load_scene(str(scene_xml))
     integ = integrator_like(scene, None)
     R = gt_alignment(frames, positions, gt)
-    cols = {k: [] for k in ("fit", "true", "mesh", "angle", "sun")}
+    cols = {k: [] for k in ("fit", "true", "mesh", "angle", "sun", "rough", "true_rough")}
     for k in positions:
         sensor, _ = set_frame(scene, frames, k)
         cam = render_camera(scene, sensor, 0, integ)
@@ -70,6 +71,9 @@ def collect(fit, frames_spec):
         cols["mesh"].append(mesh[m].astype(int))
         cols["angle"].append(np.degrees(np.arccos(np.clip(np.sum(normal * true_n, 1), -1, 1))))
         cols["sun"].append(first_channel(sun)[m] if sun is not None else np.full(m.sum(), np.nan))
+        cols["rough"].append(first_channel(cam["roughness"])[m] / alpha[m])
+        rough = first_channel(read_map(base + "roughness.exr"))
+        cols["true_rough"].append(rough[m] if rough is not None else np.full(m.sum(), np.nan))
     names = {d["mesh_id"]: d["name"] for d in json.loads((gt / "materials.json").read_text())["meshes"]}
     return {k: np.concatenate(v) for k, v in cols.items()}, names
 
@@ -86,18 +90,19 @@ def report(fit, data, names):
                                                     np.round(scale, 3)))
     angle = data["angle"]
     print("| material | pixels | true albedo | fitted (scaled) | RMSE | error share | normal [deg] "
-          "| normal share | true sun vis |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "| normal share | roughness (true, fitted) | true sun vis |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     label = np.array([names.get(int(i), str(i)) for i in data["mesh"]])
     kinds = sorted(set(label), key=lambda n: -np.sum(err2[label == n]))
     small = [n for n in kinds if np.mean(label == n) < MIN_SHARE]
     for name in [n for n in kinds if n not in small] + (["other"] if small else []):
         sel = np.isin(label, small) if name == "other" else label == name
         fmt = lambda v: " ".join("%.2f" % x for x in v)  # noqa: E731
-        print("| %s | %.3f | %s | %s | %.3f | %.3f | %.1f | %.3f | %.2f |"
+        print("| %s | %.3f | %s | %s | %.3f | %.3f | %.1f | %.3f | %.2f %.2f | %.2f |"
               % (name, sel.mean(), fmt(t[sel].mean(0)), fmt(ps[sel].mean(0)),
                  np.sqrt(err2[sel].mean() / 3), err2[sel].sum() / err2.sum(),
                  np.median(angle[sel]), angle[sel].sum() / angle.sum(),
+                 np.nanmedian(data["true_rough"][sel]), np.median(data["rough"][sel]),
                  np.nanmean(data["sun"][sel])))
 
 
