@@ -35,9 +35,10 @@ read back with bilinear interpolation, differentiable in the cosine and the
 roughness. ``tests/test_coat.py`` checks the tables against Mitsuba's own
 ``roughplastic`` and the smooth limit against the Fresnel equations.
 
-The bounce light one Gaussian passes to another is not weighted by the coat
-(:mod:`.lighting`): it is a small share of the light, and weighting it would
-need each pair's angles.
+The bounce light one Gaussian passes to another takes the coat on the way
+out only (the integrator weights all of a Gaussian's diffuse light towards
+the viewer), not on the way in (:mod:`.lighting`): it is a small share of
+the light, and the way in would need each pair's angles.
 """
 
 from __future__ import annotations

@@ -372,7 +372,7 @@ class GaussianLighting:
         roughness on the way in (:func:`~mi_invrgbl.physics.coat.transmission`
         of its angle to the normal); the way out depends on the viewer and is
         the integrator's (:func:`~mi_invrgbl.physics.coat.way_out`). The
-        bounce light a Gaussian receives is not weighted."""
+        bounce light a Gaussian receives is not weighted on its way in."""
         self.table = GaussianTable.build(nodes)
         self.diffuse_fresnel, self.f0 = bool(diffuse_fresnel), f0
         self.samples = int(samples)
