@@ -48,6 +48,7 @@ import mitsuba as mi
 import numpy as np
 
 from .brdf import MIN_ALPHA, clamp_alpha, ior_from_f0
+from .host_arrays import jit_array
 
 #: Table resolution in the cosine to the normal (0..1) and in GGX alpha (0..1).
 COS_STEPS = 65
@@ -69,12 +70,11 @@ def _visible_normal_means(alpha, mu, eta, reflect):
     u = (np.arange(n) + 0.5) / n
     u1, u2 = np.meshgrid(u, u, indexing="ij")
     cells = alpha.size
-    a = mi.Float(np.repeat(alpha, n * n).astype(np.float32))
+    a = jit_array(mi.Float, np.repeat(alpha, n * n))
     c = np.repeat(np.clip(mu, MIN_COS, 1.0), n * n)
-    wi = mi.Vector3f(mi.Float(np.sqrt(1.0 - c * c).astype(np.float32)), 0.0,
-                     mi.Float(c.astype(np.float32)))
-    sample = mi.Point2f(mi.Float(np.tile(u1.ravel(), cells).astype(np.float32)),
-                        mi.Float(np.tile(u2.ravel(), cells).astype(np.float32)))
+    wi = mi.Vector3f(jit_array(mi.Float, np.sqrt(1.0 - c * c)), 0.0, jit_array(mi.Float, c))
+    sample = mi.Point2f(jit_array(mi.Float, np.tile(u1.ravel(), cells)),
+                        jit_array(mi.Float, np.tile(u2.ravel(), cells)))
     distr = mi.MicrofacetDistribution(mi.MicrofacetType.GGX, a, True)
     m, _ = distr.sample(wi, sample)
     f, cos_t, _, eta_ti = mi.fresnel(dr.dot(wi, m), mi.Float(eta))
@@ -106,8 +106,8 @@ class CoatTables:
         # Cosine-weighted hemispherical mean 2 int R(mu) mu dmu (trapezoids).
         r_in = 2.0 * np.trapezoid(r * self.mu[None, :], self.mu, axis=1)
         self.scale_np = 1.0 / (self.eta ** 2 * (1.0 - r_in))
-        self.transmittance = mi.Float(self.transmittance_np.ravel().astype(np.float32))
-        self.scale = mi.Float(self.scale_np.astype(np.float32))
+        self.transmittance = jit_array(mi.Float, self.transmittance_np)
+        self.scale = jit_array(mi.Float, self.scale_np)
 
 
 def tables(f0) -> CoatTables:
