@@ -32,7 +32,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..physics import hits as hitlib
-from ..physics.lighting import transmittance
+from ..physics.lighting import SHADOW_OFFSET, transmittance
 from ..physics.sh import num_coeffs, sh_basis_numpy
 
 
@@ -49,7 +49,7 @@ def hemisphere_candidates(count=48, min_elevation_deg=5.0):
     return np.array(out)
 
 
-def sun_features(scene, centers, normals, directions, offset=0.1):
+def sun_features(scene, centers, normals, directions, offset=SHADOW_OFFSET):
     """``s = v max(0, n.l)`` per Gaussian for each candidate direction (G x D).
 
     Shadow rays start ``offset`` (scene units, metres for imported scenes)

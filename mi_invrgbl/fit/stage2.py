@@ -42,7 +42,7 @@ import mitsuba as mi
 from ..physics import coat
 from ..physics import hits as hitlib
 from ..physics.colour import LUMINANCE
-from ..physics.lighting import (GaussianLighting, GaussianTable, LightingCache, light_at,
+from ..physics.lighting import (GaussianLighting, GaussianTable, LightingCache, light_at, shadow_origins,
                                 point_lights, retrace_turned, transmittance)
 from . import losses, shading_init
 from ..physics.fields import BY_NAME, MATERIAL
@@ -52,9 +52,6 @@ from .steps import safe_step
 from .variables import GaussianVariable, Optimizer, ResponseVariable, SkySH, SunVariable
 from .superpixels import slic_labels
 from ..physics.host_arrays import jit_array
-
-#: Metres above a Gaussian's centre its traced sun visibility starts from.
-SHADOW_OFFSET = 0.1
 
 #: Degrees a Gaussian's normal may turn before :meth:`Stage2.refresh_lighting`
 #: traces its sky directions again. The integrator re-traces every change.
@@ -396,10 +393,9 @@ class Stage2:
                 ordered = [scene_nodes[n] for n in names]
                 table = GaussianTable.build(ordered).load_geometry()
                 d, _, _ = light_at("sun", suns[0], table.center)
-                # From 0.1 m above the surface, as the sun selection traces:
-                # from the centre, low rays graze the neighbouring Gaussians
-                # and sunlit ground looks self-shadowed.
-                origin = table.center + SHADOW_OFFSET * table.normal
+                # From above the surface, as the sun selection and the
+                # integrator trace (lighting.SHADOW_OFFSET).
+                origin = shadow_origins(table, d)
                 vis = np.clip(np.array(transmittance(ctx.scene, origin, d,
                                                      mi.Float(dr.inf), ordered)), 0.0, 1.0)
                 for name, v in zip(names, shading_init.split_by_node(vis, table, counts)):

@@ -42,6 +42,14 @@ from .host_arrays import jit_array
 GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 #: Gaussians traversed by a visibility (shadow) ray before giving up.
 SHADOW_MAX_HITS = 16
+#: Sun (and other light) shadow rays start this far above the Gaussian's
+#: centre, along its normal turned towards the light (scene units, metres
+#: for imported scenes). From the centre, rays at a low sun graze through the
+#: neighbouring Gaussians of the same surface, and a facade or a road the
+#: sun reaches at 25 degrees looks self-shadowed: relighting the synthetic
+#: street under such a sun, 59 % and 70 % of two sunlit facades came out in
+#: shadow. The fit's sun search and stage 2's start trace from here too.
+SHADOW_OFFSET = 0.1
 #: Most diffuse bounces an integrator or a fit may ask for.
 MAX_BOUNCES = 8
 #: Shadow-ray hits blended with less weight pass on no bounce light (the
@@ -179,6 +187,15 @@ def environment_radiance(scene, directions):
     si = dr.zeros(mi.SurfaceInteraction3f, dr.width(directions))
     si.wi = -directions
     return mi.Color3f(env.eval(si))
+
+
+def shadow_origins(table, directions, offset=SHADOW_OFFSET):
+    """Where shadow rays towards ``directions`` leave each Gaussian of the
+    loaded ``table``: ``offset`` above its centre along its normal, turned
+    to the light's side (normals are two-sided)."""
+    n = dr.detach(table.normal)
+    side = dr.select(dr.dot(n, directions) < 0, -1.0, 1.0)
+    return dr.detach(table.center) + n * (offset * side)
 
 
 def _shadow_trace(scene, origins, directions, maxt, nodes):
@@ -346,6 +363,9 @@ def retrace_turned(scene, nodes, cache: LightingCache, samples, pattern=0, bounc
     cache.sky_visibility = jit_array(mi.Float, vis)
     dr.eval(cache.sky_visibility)
     cache.normals[turned] = now[turned]
+    # The lights' shadow rays leave along the normals too (shadow_origins):
+    # trace them again on the next build (one ray per Gaussian and light).
+    cache.light_key = None
     return int(turned.size)
 
 
@@ -421,8 +441,11 @@ class GaussianLighting:
                         # the cache key does not see.
                         cache.light_visibility.append(None)
                         continue
-                    vis = transmittance(scene, dr.detach(table.center), d,
-                                        dr.select(dr.isfinite(dist), dist * (1 - 1e-4), dr.inf),
+                    # (A light at a finite distance: the ray stops short of
+                    # it by the offset too, not past it.)
+                    vis = transmittance(scene, shadow_origins(table, d), d,
+                                        dr.select(dr.isfinite(dist), dr.maximum(
+                                            dist - SHADOW_OFFSET, 0.0) * (1 - 1e-4), dr.inf),
                                         nodes)
                     cache.light_visibility.append(dr.detach(vis))
                 dr.eval([v for v in cache.light_visibility if v is not None])

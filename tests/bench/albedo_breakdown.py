@@ -22,18 +22,16 @@ variant_choice.from_argv()
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 import mitsuba as mi  # noqa: E402,F401
 
 import mi_invrgbl  # noqa: E402,F401
 from mi_invrgbl.eval.ground_truth import ALPHA_MIN, gt_alignment, source_number  # noqa: E402
-from mi_invrgbl.eval.inputs import read_map, resolve_inputs, select_frames  # noqa: E402
+from mi_invrgbl.eval.inputs import read_map  # noqa: E402
 from mi_invrgbl.eval.rendering import integrator_like, render_camera  # noqa: E402
-from mi_invrgbl.scene.frames import Frames  # noqa: E402
-from mi_invrgbl.scene.loading import load_scene  # noqa: E402
 from mi_invrgbl.scene.posing import set_frame  # noqa: E402
+from street_truth import open_fit  # noqa: E402
 
 #: Materials below this share of the scored pixels are pooled into "other".
 MIN_SHARE = 0.01
@@ -45,13 +43,7 @@ def first_channel(x):
 
 def collect(fit, frames_spec):
     """Per scored pixel: fitted albedo, true albedo, mesh id, normal error, true sun visibility."""
-    scene_xml, _ = resolve_inputs(fit)
-    frames = Frames.load(scene_xml)
-    if frames.ground_truth is None or not Path(frames.ground_truth).is_dir():
-        raise SystemExit("%s: no ground truth next to the frames (a make-scene street import)" % fit)
-    gt = Path(frames.ground_truth)
-    positions = select_frames(frames, frames_spec)
-    scene = load_scene(str(scene_xml))
+    frames, gt, positions, scene = open_fit(fit, frames_spec)
     integ = integrator_like(scene, None)
     R = gt_alignment(frames, positions, gt)
     cols = {k: [] for k in ("fit", "true", "mesh", "angle", "sun", "rough", "true_rough")}

@@ -60,3 +60,19 @@ def observed_linear(root, index):
     """The observed image of frame ``index`` as linear RGB."""
     img = cv2.imread(os.path.join(root, "observations", "image_%04d.png" % index))[..., ::-1] / 255.0
     return srgb_to_linear(img)
+
+
+def open_fit(fit, frames_spec="held-out"):
+    """A fitted scene folder as ``eval`` opens it: ``(frames, truth folder,
+    selected frame positions, loaded scene)``; exits with a message when the
+    frames have no ground truth (only ``make-scene street`` imports do)."""
+    from pathlib import Path
+    from mi_invrgbl.eval.inputs import resolve_inputs, select_frames
+    from mi_invrgbl.scene.frames import Frames
+    from mi_invrgbl.scene.loading import load_scene
+    scene_xml, _ = resolve_inputs(fit)
+    frames = Frames.load(scene_xml)
+    if frames.ground_truth is None or not Path(frames.ground_truth).is_dir():
+        sys.exit("%s: no ground truth next to the frames (a make-scene street import)" % fit)
+    return frames, Path(frames.ground_truth), select_frames(frames, frames_spec), \
+        load_scene(str(scene_xml))
