@@ -342,7 +342,6 @@ def test_cli_flags_reach_the_config():
     parse = lambda *a: config_from_args(build_parser().parse_args(["fit", "s.xml", *a]))  # noqa: E731
     default = parse()
     assert default.prune_sky_lookalikes and not default.learn_sun_direction
-    assert not default.prune_unseen and parse("--prune-unseen").prune_unseen
     assert default.sun_visibility == "learn"
     cfg = parse("--keep-sky-lookalikes", "--learn-sun-direction", "--sun-visibility", "trace")
     assert not cfg.prune_sky_lookalikes and cfg.learn_sun_direction and cfg.sun_visibility == "trace"

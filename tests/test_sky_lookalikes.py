@@ -11,14 +11,25 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
-import gaussian_walls as walls
 from mi_invrgbl.fit.sky_lookalikes import accumulate, frame_statistics, lookalike_masks
 
 SKY = np.array([0.3, 0.38, 0.5])
 
 
 def wall(shape_id, x, y0, y1, colour, opacity, spacing=0.1):
-    return walls.wall(shape_id, x, (y0, y1), (0.0, 2.0), colour, opacity, spacing, seed=2)
+    ys = np.arange(y0, y1 + 1e-6, spacing)
+    zs = np.arange(0.0, 2.0 + 1e-6, spacing)
+    Y, Z = np.meshgrid(ys, zs)
+    c = np.stack([np.full(Y.size, x), Y.ravel(), Z.ravel()], 1).astype(np.float32)
+    # Jittered in depth too: discs entered at the same distance would hide
+    # each other from the traversal (it steps just past each entry point).
+    c += np.random.default_rng(2).uniform(-0.03, 0.03, c.shape).astype(np.float32)
+    n = c.shape[0]
+    s = 1.1 * spacing
+    t = lambda a: mi.TensorXf(np.asarray(a, np.float32))  # noqa: E731
+    return {"type": "gaussians", "id": shape_id, "centers": t(c),
+            "scales": t(np.tile([[1e-3, s, s]], (n, 1))), "opacities": t(np.full(n, opacity)),
+            "normals": t(np.tile([[-1.0, 0, 0]], (n, 1))), "albedo": t(np.tile([colour], (n, 1)))}
 
 
 def test_only_the_sky_coloured_wall_against_the_sky_is_a_lookalike():

@@ -97,10 +97,6 @@ FLAGS = (
     ("--keep-sky-lookalikes", "prune_sky_lookalikes",
      "keep stage-1 Gaussians that have the sky's colour and only sky behind them (default: "
      "removed before stage 2; they cast shadows no roof casts)", {"invert": True}),
-    ("--prune-unseen", "prune_unseen",
-     "remove stage-1 Gaussians that no training camera pixel or LiDAR beam sees before stage 2 "
-     "(the import's wall extensions above roofs no camera looked past, but also upper floors "
-     "no camera looked at)", {}),
     ("--validation-every", "validation_every",
      "every N-th training frame is a validation frame (index %% N == min(2, N // 2)): not "
      "trained on, it scores the model choices and the early stop (0: none; selection then "

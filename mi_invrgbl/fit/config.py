@@ -16,7 +16,7 @@ MODEL_FIELDS = ("batch_rays", "lidar_batch_rays", "fit_width", "lidar_columns", 
                 "densify_fraction", "densify_screen", "densify_scope", "split_scale",
                 "max_gaussians", "stage1_range", "stage1_drop", "stage1_sky", "seed", "fit_response",
                 "sun_candidates", "sun_gaussians", "per_frame_visibility", "learn_sun_direction",
-                "prune_sky_lookalikes", "prune_unseen", "unseen_weight", "sky_mask", "sun_visibility", "validation_every",
+                "prune_sky_lookalikes", "sky_mask", "sun_visibility", "validation_every",
                 "object_poses")
 
 
@@ -175,15 +175,6 @@ class FitConfig:
     per_frame_visibility: bool = False
     learn_sun_direction: bool = False  # stage 2 refines the selected sun direction (opt-in)
     prune_sky_lookalikes: bool = True  # drop sky-coloured Gaussians with only sky behind them
-    #: Drop the Gaussians no training pixel or LiDAR beam sees (.unseen) after
-    #: stage 1: the import's wall extensions above roofs no camera looked past,
-    #: and the upper floors no camera looked at. Off by default: on the
-    #: synthetic street it traded one for the other (README, "Shadows under
-    #: a new sun").
-    prune_unseen: bool = False
-    #: A Gaussian whose blend weight summed over the training pixels and
-    #: beams stays below this is unseen.
-    unseen_weight: float = 0.05
     sky_mask: bool = True  # mark the images' sky for stage 1 (.sky_mask); weight: stage1_sky
     sun_visibility: str = "learn"  # learn | trace: the paper's per-Gaussian v_sun, or traced only
     #: Stage 1 corrects the moving objects' per-frame poses (.object_poses).

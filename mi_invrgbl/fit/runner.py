@@ -235,15 +235,6 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
         state.log("[fit] sky look-alikes: %s removed (sky-coloured Gaussians with only sky "
                   "behind them; %.1f s)" % (", ".join("%s %d" % kv for kv in removed.items())
                                             or "none", time.perf_counter() - t))
-    if config.prune_unseen:
-        t = time.perf_counter()
-        removed = s1.prune_unseen(config.unseen_weight)
-        state.selection["unseen"] = {"removed": removed, "min_weight": config.unseen_weight,
-                                     "seconds": time.perf_counter() - t}
-        state.times["unseen"] = state.selection["unseen"]["seconds"]
-        state.log("[fit] unseen: %s removed (no training pixel or beam sees them; %.1f s)"
-                  % (", ".join("%s %d" % kv for kv in removed.items()) or "none",
-                     time.perf_counter() - t))
     s1.pull()
     state.model.push(state.train_frames[0].poses, stage=1)
 

@@ -215,19 +215,7 @@ class Stage1:
         (:mod:`.sky_lookalikes`); returns the count removed per node."""
         from .sky_lookalikes import find_sky_lookalikes
         self.pull()
-        return self._remove(find_sky_lookalikes(self.ctx, self.ctx.train_frames))
-
-    def prune_unseen(self, min_weight):
-        """Remove the Gaussians no training camera pixel or LiDAR beam sees
-        (:mod:`.unseen`); returns the count removed per node."""
-        from .unseen import find_unseen
-        self.pull()
-        return self._remove(find_unseen(self.ctx, self.ctx.train_frames, min_weight))
-
-    def _remove(self, masks):
-        """Drop the Gaussians ``masks`` ({node: bool per Gaussian}) marks;
-        the optimiser keeps the survivors' moments. Returns the count
-        removed per node."""
+        masks = find_sky_lookalikes(self.ctx, self.ctx.train_frames)
         removed, parents = {}, {}
         for name, drop in masks.items():
             node = self.model.nodes[name]
