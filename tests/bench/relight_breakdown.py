@@ -4,11 +4,15 @@
 
 ``eval`` relights a fit by setting its sky and sun to the ground truth's
 time-B light and scores the render against the truth's time-B image. The
-fitted albedo carries whatever level the fitted light left it: a fit whose
-light came out at three quarters of the truth's has albedo 4/3 too bright,
-and every relit pixel is too bright by the same factor. This script renders
-each held-out frame three times through ``eval``'s own pipeline and
-prints, for both lights:
+fitted albedo carries whatever the fitted light left it: where the fit's
+sun came out weaker against its sky than the truth's, the albedo of
+sunlit surfaces is too bright, and every relit pixel there too. This script
+renders each held-out frame four times through ``eval``'s own pipeline:
+under the fit's own light; the same with the sun's shadows traced through
+the Gaussians instead of read from the learned visibility field; under the
+truth's time-A light (the time of day the fit was made at), set the way
+``eval`` sets time B, with traced shadows; and under time B. For each it
+prints:
 
 - the PSNR as ``eval`` scores it;
 - the least-squares scale per channel (linear radiance, pooled over the
@@ -23,8 +27,10 @@ prints, for both lights:
   sunlit (shadow rays from the true surface point of each pixel, towards
   the time-B sun, through the truth's ``scene_time_b.xml`` and through the
   fitted scene as ``eval``'s relighting traces it), and the share on which
-  the two disagree. Shadow casters the fit lacks (facade tops above the
-  cameras' view) show as sunlit pixels the truth has in shadow. The truth's
+  the two disagree. Shadow casters the fit lacks show as sunlit pixels the
+  truth has in shadow; casters it has and the truth does not (walls the
+  import extended above a lower roof) as shadowed pixels the truth lights.
+  The truth's
   moving car stands where ``scene_time_b.xml`` puts it, so its own pixels
   and the shadow it casts are left out of that comparison.
 """
@@ -128,6 +134,12 @@ def collect(fit, frames_spec, spp):
         cols["albedo"].append(read_map(str(gt / "maps" / ("%06d_albedo.exr" % n))).reshape(-1, 3))
     swap = SkySwap(sky)
     traced = integrator_like(scene, None, "trace")
+    # The fit's own light with the sun's shadows traced: what the learned
+    # visibility field alone changes.
+    cols["fit_ot"] = []
+    for k in positions:
+        sensor, _ = set_frame(scene, frames, k)
+        cols["fit_ot"].append(render_camera(scene, sensor, spp, traced)["rgb"].reshape(-1, 3))
     try:
         for key, light in (("fit_at", lights["time_a"]), ("fit_b", lights["time_b"])):
             swap.set(light.get("sky_radiance", [0, 0, 0]),
@@ -157,17 +169,19 @@ def report(fit_dir, data, names):
     print("| light | PSNR [dB] | best scale per channel | PSNR after the scale [dB] |")
     print("|---|---|---|---|")
     for tag, f, t in (("own (time A)", data["fit_a"], data["true_a"]),
+                      ("own, sun's shadows traced", data["fit_ot"], data["true_a"]),
                       ("time A relit (true light, traced sun)", data["fit_at"], data["true_a"]),
                       ("time B (relit)", data["fit_b"], data["true_b"])):
         s = np.sum(f * t, 0) / np.maximum(np.sum(f * f, 0), 1e-12)
         print("| %s | %.2f | %s | %.2f |" % (tag, psnr(f, t), " ".join("%.3f" % v for v in s),
                                              psnr(f * s, t)))
-    print("| material | pixels | A: error share | A: fitted/true | A relit: error share "
-          "| A relit: fitted/true | B: error share | B: fitted/true |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| material | pixels | A: error share | A: fitted/true | A traced: error share "
+          "| A traced: fitted/true | A relit: error share | A relit: fitted/true "
+          "| B: error share | B: fitted/true |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     err = {}
-    truth = {"a": "true_a", "at": "true_a", "b": "true_b"}
-    for tag in ("a", "at", "b"):
+    truth = {"a": "true_a", "ot": "true_a", "at": "true_a", "b": "true_b"}
+    for tag in ("a", "ot", "at", "b"):
         a = np.clip(M.linear_to_srgb(data["fit_" + tag]), 0.0, 1.0)
         b = np.clip(M.linear_to_srgb(data[truth[tag]]), 0.0, 1.0)
         err[tag] = np.sum((a - b) ** 2, 1)
@@ -176,7 +190,7 @@ def report(fit_dir, data, names):
     for name in [n for n in kinds if n not in small] + (["other"] if small else []):
         sel = np.isin(label, small) if name == "other" else label == name
         cells = []
-        for tag in ("a", "at", "b"):
+        for tag in ("a", "ot", "at", "b"):
             ratio = (np.mean(data["fit_" + tag][sel] @ LUMINANCE)
                      / max(np.mean(data[truth[tag]][sel] @ LUMINANCE), 1e-12))
             cells.append("%.3f | %.2f" % (err[tag][sel].sum() / err[tag].sum(), ratio))
