@@ -24,9 +24,10 @@ prints:
   light and not under the other (say, shadowed at time A, sunlit at B);
 - per material, where the time-B sun reaches: the share of its pixels the
   truth's meshes leave sunlit and the share the fitted Gaussians leave
-  sunlit (shadow rays from the true surface point of each pixel, towards
-  the time-B sun, through the truth's ``scene_time_b.xml`` and through the
-  fitted scene as ``eval``'s relighting traces it), and the share on which
+  sunlit (shadow rays from SHADOW_OFFSET above the true surface point of
+  each pixel, towards the time-B sun, through the truth's
+  ``scene_time_b.xml`` and through the fitted Gaussians; ``eval`` traces
+  from above each Gaussian's centre instead), and the share on which
   the two disagree. Shadow casters the fit lacks show as sunlit pixels the
   truth has in shadow; casters it has and the truth does not (walls the
   import extended above a lower roof) as shadowed pixels the truth lights.
@@ -52,6 +53,8 @@ from mi_invrgbl.eval import metrics as M  # noqa: E402
 from mi_invrgbl.eval.ground_truth import gt_alignment, load_lights, source_number  # noqa: E402
 from mi_invrgbl.eval.inputs import read_channels, read_map  # noqa: E402
 from mi_invrgbl.eval.rendering import SkySwap, find_sky, integrator_like, render_camera  # noqa: E402
+from mi_invrgbl.eval.scoring import EVAL_SPP  # noqa: E402
+from mi_invrgbl.physics.colour import LUMINANCE  # noqa: E402
 from mi_invrgbl.physics import hits as hitlib  # noqa: E402
 from mi_invrgbl.physics.host_arrays import jit_array  # noqa: E402
 # Shadow rays leave the true surface as the integrator's leave a Gaussian.
@@ -62,7 +65,6 @@ from street_truth import open_fit  # noqa: E402
 
 #: Materials below this share of the pixels are pooled into "other".
 MIN_SHARE = 0.01
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
 def truth_image(path):
@@ -214,7 +216,8 @@ def main():
     ap.add_argument("fits", nargs="+", help="fitted scene folders (fit/)")
     ap.add_argument("--frames", default="held-out", help="frame selection as in eval (default held-out)")
     ap.add_argument("--save", help="also write the per-pixel columns to this .npz (one fit)")
-    ap.add_argument("--spp", type=int, default=32, help="camera samples per pixel (eval's 32)")
+    ap.add_argument("--spp", type=int, default=EVAL_SPP,
+                    help="camera samples per pixel (default: eval's, %d)" % EVAL_SPP)
     args = ap.parse_args()
     for fit in args.fits:
         data, names = collect(fit, args.frames, args.spp)

@@ -20,7 +20,7 @@ import mitsuba as mi
 
 from mi_invrgbl.eval.metrics import srgb_to_linear  # noqa: E402
 
-LUM = np.array([0.2126, 0.7152, 0.0722])
+from mi_invrgbl.physics.colour import LUMINANCE as LUM  # noqa: E402
 
 
 def read_exr(path):
