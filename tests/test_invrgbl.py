@@ -300,6 +300,27 @@ def test_a_low_sun_does_not_shadow_a_surface_with_its_own_gaussians():
     assert from_centre[inner].mean() < 0.85 and offset[inner].min() > 0.98
 
 
+def test_a_point_light_nearer_than_the_shadow_offset_still_lights_and_stays_finite():
+    # Shadow rays to a light at a finite distance stop SHADOW_OFFSET short of
+    # it; a light closer than that to a Gaussian gives a ray of length 0,
+    # which must read as unblocked, not as NaN or shadow. (Mitsuba also
+    # reads a negative length as no hit, so this checks the outcome, not the
+    # clamp that keeps the length at 0.)
+    from mi_invrgbl.physics.lighting import SHADOW_OFFSET
+    light = {"type": "point", "position": [0.0, 0.0, 0.5 * SHADOW_OFFSET],
+             "intensity": {"type": "rgb", "value": 0.01}}
+
+    g, _ = layer(extent=0.6, albedo=(0.5, 0.5, 0.5), roughness=0.5)
+    img, _ = render({"integrator": {"type": "invrgbl", "samples": 4}, "ground": g, "light": light,
+                     "sensor": camera([0, 0, 2], [0, 0, 0], up=(0, 1, 0), fov=20, size=16)})
+    assert np.all(np.isfinite(img))
+    # Lit where the light is nearest, and brighter there than at the edge
+    # (a ray read as blocked would leave the middle black).
+    middle, edge = img[7:9, 7:9, 1], img[0, :, 1]
+    print("under the light %.4g, at the edge %.4g" % (middle.min(), edge.max()))
+    assert middle.min() > 3 * edge.max() > 0
+
+
 # ==================================================================
 # 4. Point and spot lights (night scenes): closed form
 # ==================================================================
