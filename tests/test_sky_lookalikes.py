@@ -113,3 +113,55 @@ def test_sky_coloured_wall_in_front_of_a_mesh_is_kept():
     accumulate(acc, {"front": hitlib.shape_id(front)}, stats)
     assert (acc["front"][:, 0] > 0.05).sum() > 5
     assert not lookalike_masks(acc)["front"].any()
+
+
+def test_the_unseen_part_of_a_column_above_a_lookalike_goes_with_it():
+    # The sky-coloured phantom wall again, but the cameras see only its lower
+    # half (z < 0.9): its upper half is what the import would have extended
+    # above the frustum. Beside it, the dark wall's upper half is as unseen
+    # but stands on no look-alike, and the front wall hides a building.
+    from mi_invrgbl.fit.sky_lookalikes import unseen_above
+    from mi_invrgbl.physics import hits as hitlib
+    sh = " ".join("%.6f" % (v / 0.28209479) for v in SKY)
+    walls = {"phantom": wall("phantom", 5.0, -4.0, -2.0, SKY, 0.3),
+             "dark": wall("dark", 5.0, -1.0, 1.0, (0.1, 0.08, 0.06), 0.3)}
+    scene = mi.load_dict({"type": "scene", "sky": {"type": "shsun", "order": 0, "sh": sh}, **walls})
+    ys, zs = np.meshgrid(np.linspace(-3.8, 0.8, 160), np.linspace(0.1, 0.7, 12))
+    o = mi.Point3f(mi.Float(np.zeros(ys.size)), mi.Float(ys.ravel()), mi.Float(zs.ravel()))
+    rays = mi.Ray3f(o, mi.Vector3f(dr.ones(mi.Float, ys.size), 0.0, 0.0))
+    ids = {s.id(): hitlib.shape_id(s) for s in scene.shapes()}
+    acc = {name: np.zeros((dr.width(mi.traverse(scene)[name + ".opacities"]), 3)) for name in ids}
+    with dr.suspend_grad():
+        accumulate(acc, ids, frame_statistics(scene, rays))
+    masks = lookalike_masks(acc)
+    for name in ids:
+        centres = walls[name]["centers"].numpy()
+        seen = acc[name][:, 0] > 0.05
+        over = unseen_above(centres, masks[name], acc[name][:, 0])
+        assert not (over & masks[name]).any() and not (over & seen).any()
+        high = centres[:, 2] > 1.2
+        if name == "phantom":
+            assert masks[name].sum() > 50 and not masks[name][high].any()
+            # Every column (0.25 m cell) that has a look-alike loses all it
+            # has above 1.2 m; nearly every column has one.
+            cell = lambda p: np.floor(p[:, :2] / 0.25).astype(int) @ [1, 1000]  # noqa: E731
+            in_col = np.isin(cell(centres), cell(centres[masks[name]]))
+            assert np.all(over[high & in_col]) and over[high].mean() > 0.8
+            assert not over[centres[:, 2] < 0.5].any()
+        else:
+            assert not over.any()
+
+
+def test_unseen_above_keeps_other_columns_and_what_lies_below():
+    from mi_invrgbl.fit.sky_lookalikes import unseen_above
+    c = np.array([[0.1, 0.1, 5.0],     # look-alike
+                  [0.1, 0.1, 6.0],     # unseen above it: goes
+                  [0.12, 0.1, 7.0],    # same cell, unseen: goes
+                  [0.1, 0.1, 8.0],     # seen above it: keeps its own verdict
+                  [0.1, 0.1, 4.0],     # unseen below it: stays
+                  [0.4, 0.1, 9.0]])    # next cell: stays
+    look = np.array([True, False, False, False, False, False])
+    w = np.array([1.0, 0.0, 0.01, 0.5, 0.0, 0.0])
+    assert unseen_above(c, look, w).tolist() == [False, True, True, False, False, False]
+    assert not unseen_above(c, np.zeros(6, bool), w).any()
+    assert unseen_above(np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0)).shape == (0,)

@@ -229,12 +229,15 @@ def fit_geometry(state: FitState, start, opt_state, checkpoint, budget=None):
         keep_best(state, run, s1.restore, last)
     if config.prune_sky_lookalikes:
         t = time.perf_counter()
-        removed = s1.prune_sky_lookalikes()
-        state.selection["sky_lookalikes"] = {"removed": removed, "seconds": time.perf_counter() - t}
+        removed, above = s1.prune_sky_lookalikes()
+        state.selection["sky_lookalikes"] = {"removed": removed, "unseen_above": above,
+                                             "seconds": time.perf_counter() - t}
         state.times["sky look-alikes"] = state.selection["sky_lookalikes"]["seconds"]
         state.log("[fit] sky look-alikes: %s removed (sky-coloured Gaussians with only sky "
-                  "behind them; %.1f s)" % (", ".join("%s %d" % kv for kv in removed.items())
-                                            or "none", time.perf_counter() - t))
+                  "behind them), and %s unseen above them in their columns; %.1f s"
+                  % (", ".join("%s %d" % kv for kv in removed.items()) or "none",
+                     ", ".join("%s %d" % kv for kv in above.items()) or "none",
+                     time.perf_counter() - t))
     s1.pull()
     state.model.push(state.train_frames[0].poses, stage=1)
 

@@ -18,6 +18,14 @@ images as they are. The second test keeps a real sky-blue wall in front of
 a darker building: removing it would reveal the building. Rays are traced
 deep (transmittance down to 1e-4) so that what such a wall hides is found;
 a Gaussian seen by any ray cut off before that, or ending on a mesh, is kept.
+
+Above a look-alike, its vertical column (an xy cell of ``COLUMN_CELL``
+metres in the node's frame, z up) goes too where no training camera sees it
+(summed blend weight at most ``min_weight``): where a camera saw the sky
+through the column, what the import extended above that height stands for a
+wall no image shows, and it would cast the sun's shadows that the images
+never saw. Gaussians above a look-alike that some camera does see keep their
+own verdict.
 """
 
 from __future__ import annotations
@@ -123,9 +131,35 @@ def lookalike_masks(acc, tolerance=0.15, min_weight=0.05):
     return out
 
 
+#: Metres: the xy cell of a vertical column. The import extends a facade in
+#: columns of one xy each (``mi_invrgbl.io.importer._extend_walls``, cells of
+#: 0.25 m), so a column of extension never spans two cells of this grid
+#: unless it lies on a cell's edge.
+COLUMN_CELL = 0.25
+
+
+def unseen_above(centres, lookalike, weight, min_weight=0.05, cell=COLUMN_CELL):
+    """Boolean mask: Gaussians no camera sees (``weight`` at most
+    ``min_weight``) whose centre stands above a look-alike's in the same xy
+    cell of ``cell`` metres (z up). ``centres`` (N, 3), ``lookalike`` and
+    ``weight`` (N,)."""
+    centres = np.asarray(centres, np.float64).reshape(-1, 3)
+    lookalike = np.asarray(lookalike, bool)
+    out = np.zeros(centres.shape[0], bool)
+    if not lookalike.any():
+        return out
+    _, inv = np.unique(np.floor(centres[:, :2] / cell).astype(np.int64), axis=0, return_inverse=True)
+    inv = inv.ravel()
+    lowest = np.full(int(inv.max()) + 1, np.inf)
+    np.minimum.at(lowest, inv[lookalike], centres[lookalike, 2])
+    return ~lookalike & (np.asarray(weight) <= min_weight) & (centres[:, 2] > lowest[inv])
+
+
 def find_sky_lookalikes(ctx, frames, tolerance=0.15, min_weight=0.05, stage=1):
-    """Boolean mask per node name: Gaussians whose colour and background both
-    match the sky wherever the training cameras see them."""
+    """Per node name, two boolean masks: ``(lookalike, above)``; look-alikes
+    are Gaussians whose colour and background both match the sky wherever the
+    training cameras see them, ``above`` the unseen ones above them in their
+    columns (:func:`unseen_above`)."""
     acc = {name: np.zeros((node.count, 3)) for name, node in ctx.model.nodes.items()}
     with dr.suspend_grad():
         for f in frames:
@@ -135,4 +169,6 @@ def find_sky_lookalikes(ctx, frames, tolerance=0.15, min_weight=0.05, stage=1):
             accumulate(acc, ctx.model.shape_ids,
                        frame_statistics(ctx.scene, f.camera.rays, max(ctx.config.max_hits, 64), 1e-4,
                                         tolerance, f.camera.valid()))
-    return lookalike_masks(acc, tolerance, min_weight)
+    masks = lookalike_masks(acc, tolerance, min_weight)
+    return {name: (m, unseen_above(ctx.model.nodes[name].numpy("center"), m, acc[name][:, 0], min_weight))
+            for name, m in masks.items()}

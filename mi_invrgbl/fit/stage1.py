@@ -211,24 +211,26 @@ class Stage1:
             self.grad_accum[name] = acc
 
     def prune_sky_lookalikes(self):
-        """Remove the Gaussians that only stand in for the sky
-        (:mod:`.sky_lookalikes`); returns the count removed per node."""
+        """Remove the Gaussians that only stand in for the sky and the unseen
+        ones above them in their columns (:mod:`.sky_lookalikes`); returns
+        ``(look-alikes, above)``, each the count removed per node."""
         from .sky_lookalikes import find_sky_lookalikes
         self.pull()
         masks = find_sky_lookalikes(self.ctx, self.ctx.train_frames)
-        removed, parents = {}, {}
-        for name, drop in masks.items():
+        removed, above, parents = {}, {}, {}
+        for name, (lookalike, over) in masks.items():
             node = self.model.nodes[name]
+            drop = lookalike | over
             if not drop.any() or drop.size != node.count:
                 continue
             cloud = self.model.cloud(name, stage=1)
             cloud.albedo = np.clip(node.numpy("colour"), 0, 1)
             self._replace_cloud(name, cloud.subset(~drop))
-            removed[name] = int(drop.sum())
+            removed[name], above[name] = int(lookalike.sum()), int(over.sum())
             parents[name] = np.nonzero(~drop)[0]
         if removed:
             self.opt = self.opt.rebuild(self.variables(), parents)
-        return removed
+        return removed, above
 
     def _replace_cloud(self, name, cloud):
         """Swap a node's Gaussians (stage-1 colour carried in ``cloud.albedo``).
