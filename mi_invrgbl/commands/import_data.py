@@ -69,9 +69,8 @@ def add_parser(subparsers):
                         "registering its points to the sweeps before and after (a vehicle that "
                         "stops or starts); off by default")
     p.add_argument("--extend-walls", type=float, default=d.extend_walls,
-                   help="extend facades cut by the LiDAR's top beam upward by up to this many metres "
-                        "(each column as high as some training camera sees), so the cameras' view "
-                        "above the LiDAR has Gaussians (default %(default)s; 0: off)")
+                   help="extend facades cut by the LiDAR's top beam upward by this many metres, "
+                        "so the cameras' view above the LiDAR has Gaussians (default %(default)s; 0: off)")
     p.add_argument("--object-headroom", type=float, default=d.object_headroom,
                    help="continue a moving object whose LiDAR points the top beam cut (a truck "
                         "beside the car) this many metres up (default %(default)s; 0: off)")

@@ -28,9 +28,7 @@ extend walls
     (an xy cell of ``0.25`` m whose points span >= 1 m in height) whose top
     point was measured by the top beams (elevation within 0.6 degrees of the
     highest beam, i.e. cut by the field of view, not a real top edge) are
-    extended upward by up to ``extend_walls`` metres in 0.25 m steps, each
-    column as high as some training camera's image (5 % margin, occlusion
-    not considered) reaches; the new
+    extended upward by ``extend_walls`` metres in 0.25 m steps; the new
     points inherit their seed's intensity and range, and are exempt from the
     random thinning to ``max_points`` (up to 40 % of it) so that extended
     walls stay opaque enough to cast shadows. Stage 1 of ``fit`` lowers the
@@ -79,7 +77,6 @@ from .. import outdir
 from ..errors import UserError
 from . import init_gaussians as ig
 from .images import read_image_uint8
-from .triangulate import held_out
 from .objects import (tracks_to_objects, in_box, box_surface_samples, extend_object_top,
                       OBJECT_HEADROOM, TOP_BEAM_MARGIN_DEG)
 
@@ -109,7 +106,7 @@ class ImportOptions:
     beams: int | None = None
     sky_order: int = 2
     sun_irradiance: float = 0.0
-    extend_walls: float = 10.0         # metres above the top beam's hits at most (0: off)
+    extend_walls: float = 10.0         # metres above the top beam's hits (0: off)
     object_headroom: float = OBJECT_HEADROOM  # metres above a cut object's top (0: off)
     triangulate: bool = True           # camera-only geometry (io/triangulate.py)
     motion: bool = True                # moving objects from the LiDAR when unlabelled (io/motion.py)
@@ -617,48 +614,19 @@ def _extend_walls(state: ImportState, opts, log, cell=0.25, min_height=1.0, step
     _, first = np.unique(inv[order], return_index=True)
     seeds = order[first]
     k = np.arange(1, int(opts.extend_walls / step) + 1)
+    n_new = seeds.size * k.size
     new = np.repeat(P[seeds], k.size, axis=0)
     new[:, 2] += np.tile(k * step, seeds.size)
-    column = np.repeat(np.arange(seeds.size), k.size)
-    # Each column reaches only as high as some training camera's view: above
-    # that no image shows the wall, and none ever could correct it. On the
-    # synthetic street four in five of the Gaussians that cast the relit
-    # sun's shadows where the truth has none stood above a lower roof outside
-    # every training camera's view (tests/bench/relight_breakdown.py).
-    top = np.full(seeds.size, -np.inf)
-    np.maximum.at(top, column, np.where(_in_training_views(state, new), new[:, 2], -np.inf))
-    keep = new[:, 2] <= top[column]
-    new, column = new[keep], column[keep]
-    seeds_of = seeds[column]
-    n_new = len(new)
     for key, values in (("points", new.astype(np.float32)),
-                        ("intensity", bg.intensity[seeds_of]),
-                        ("range", bg.range[seeds_of]),
-                        ("frame", bg.frame[seeds_of])):
+                        ("intensity", np.repeat(bg.intensity[seeds], k.size)),
+                        ("range", np.repeat(bg.range[seeds], k.size)),
+                        ("frame", np.repeat(bg.frame[seeds], k.size))):
         old = getattr(bg, key)
         setattr(bg, key, np.concatenate([old, values.astype(old.dtype)]))
-    bg.seed = np.concatenate([np.full(len(P), -1, np.int64), seeds_of])
+    bg.seed = np.concatenate([np.full(len(P), -1, np.int64), np.repeat(seeds, k.size)])
     state.counts["wall_extension_points"] = int(n_new)
-    state.counts["wall_extension_unseen"] = int(keep.size - n_new)
-    log("[import] %d facade columns cut by the top beam extended by up to %.1f m, as high as a "
-        "training camera sees (%d points; %d above every training view left out)"
-        % (np.unique(column).size, opts.extend_walls, n_new, keep.size - n_new))
-
-
-def _in_training_views(state: ImportState, points, margin=0.05):
-    """Bool per world point: inside the image (widened by ``margin`` of its
-    size on each side, for a Gaussian's reach over the edge) of some training
-    frame's camera, in front of it; occlusion is not considered."""
-    W, H = state.size
-    seen = np.zeros(len(points), bool)
-    for i, cam in enumerate(state.cam_poses):
-        if held_out(i):
-            continue
-        uv, z, _ = ig.project(points, np.linalg.inv(cam), state.K, (W, H))
-        seen |= (z > 0.5) & (np.abs(uv[:, 0] / W - 0.5) <= 0.5 + margin) \
-            & (np.abs(uv[:, 1] / H - 0.5) <= 0.5 + margin)
-    return seen
-
+    log("[import] %d facade columns cut by the top beam extended by %.1f m (%d points)"
+        % (seeds.size, opts.extend_walls, n_new))
 
 
 # -- background Gaussians ---------------------------------------------------------------
@@ -965,7 +933,7 @@ def _write_observations(src, state: ImportState, obs: Path, object_names) -> lis
         else:
             time_s = 0.1 * (p - state.positions[0])
         records.append(FrameRecord(
-            index=i, time=round(time_s, 6), held_out=held_out(i),
+            index=i, time=round(time_s, 6), held_out=(i % 5 == 4),
             camera=f"camera_{name}", lidar=f"lidar_{name}",
             image=img_out, lidar_scan=obs / f"lidar_{name}.exr",
             points=obs / f"points_{name}.npy",
