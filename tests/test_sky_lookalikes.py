@@ -117,9 +117,9 @@ def test_sky_coloured_wall_in_front_of_a_mesh_is_kept():
 
 def test_the_unseen_part_of_a_column_above_a_lookalike_goes_with_it():
     # The sky-coloured phantom wall again, but the cameras see only its lower
-    # half (z < 0.9): its upper half is what the import would have extended
-    # above the frustum. Beside it, the dark wall's upper half is as unseen
-    # but stands on no look-alike, and the front wall hides a building.
+    # part (rays at z 0.1-0.7 m): its upper part stands for what the import
+    # extends above every camera's view. Beside it, the dark wall's upper part
+    # is as unseen but stands on no look-alike: it stays.
     from mi_invrgbl.fit.sky_lookalikes import unseen_above
     from mi_invrgbl.physics import hits as hitlib
     sh = " ".join("%.6f" % (v / 0.28209479) for v in SKY)
