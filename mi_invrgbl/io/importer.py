@@ -77,6 +77,7 @@ from .. import outdir
 from ..errors import UserError
 from . import init_gaussians as ig
 from .images import read_image_uint8
+from .triangulate import held_out
 from .objects import (tracks_to_objects, in_box, box_surface_samples, extend_object_top,
                       OBJECT_HEADROOM, TOP_BEAM_MARGIN_DEG)
 
@@ -933,7 +934,7 @@ def _write_observations(src, state: ImportState, obs: Path, object_names) -> lis
         else:
             time_s = 0.1 * (p - state.positions[0])
         records.append(FrameRecord(
-            index=i, time=round(time_s, 6), held_out=(i % 5 == 4),
+            index=i, time=round(time_s, 6), held_out=held_out(i),
             camera=f"camera_{name}", lidar=f"lidar_{name}",
             image=img_out, lidar_scan=obs / f"lidar_{name}.exr",
             points=obs / f"points_{name}.npy",
