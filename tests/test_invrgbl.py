@@ -261,8 +261,9 @@ def test_a_low_sun_does_not_shadow_a_surface_with_its_own_gaussians():
     # A shadow ray traced from a centre towards a sun 15 degrees up passes
     # through its neighbours' peaks and the open surface loses part of its
     # sun (a quarter here); traced from SHADOW_OFFSET above the centre (as
-    # the fit's sun search and stage 2's start trace) it loses none. With nothing to block the sun,
-    # traced visibility must render as the field at 1 does.
+    # the fit's sun search and stage 2's start trace) it loses none. With
+    # nothing to block the sun, traced visibility must render as the field
+    # at 1 does.
     sun = [math.cos(math.radians(15)), 0.0, math.sin(math.radians(15))]
 
     def ground(mode):

@@ -43,6 +43,7 @@ variant_choice.from_argv()
 
 import argparse  # noqa: E402
 import json  # noqa: E402
+from collections import namedtuple  # noqa: E402
 
 import numpy as np  # noqa: E402
 import drjit as dr  # noqa: E402
@@ -77,10 +78,17 @@ def vector3f(a):
                          for i in range(3)])
 
 
-def sun_reach(scene, gt_scene, frames, k, gt, cams, sun_gt, R):
-    """Per pixel of frame ``k``: 1 where the truth's meshes leave the true
-    surface point open to the sun ``sun_gt``, the same through the fitted
-    scene (NaN where the truth sees no surface)."""
+SunRays = namedtuple("SunRays", "hit origin sun_fit to_gt true_vis vis")
+
+
+def sun_rays(scene, gt_scene, frames, k, gt, cams, sun_gt, R):
+    """Per pixel of frame ``k``, shadow rays towards the sun ``sun_gt`` from
+    SHADOW_OFFSET above the true surface point: ``hit`` (the truth sees a
+    surface), ``origin`` and ``sun_fit`` (the rays in the fitted scene's
+    world), ``to_gt`` (4x4, the fitted scene's world into the truth's),
+    ``true_vis`` (bool: facing the sun and open to it through the truth's
+    meshes) and ``vis`` (the fitted Gaussians' transmittance, 0 where the
+    surface faces away)."""
     rec, n = frames[k], source_number(frames[k])
     sensor, _ = set_frame(scene, frames, k)
     w, h = sensor.film().size()
@@ -100,11 +108,19 @@ def sun_reach(scene, gt_scene, frames, k, gt, cams, sun_gt, R):
     facing = (normal @ sun_gt) > 0
     shadow = mi.Ray3f(vector3f(p_gt + SHADOW_OFFSET * normal), vector3f(np.tile(sun_gt, (len(p_gt), 1))))
     true_vis = facing & ~np.array(gt_scene.ray_test(shadow), bool)
-    vis = np.array(transmittance(scene, vector3f(p_fit + SHADOW_OFFSET * normal @ R.T),
-                                 vector3f(np.tile(sun_fit, (len(p_fit), 1))), mi.Float(dr.inf),
-                                 hitlib.gaussian_nodes(scene)), np.float64)
+    origin = p_fit + SHADOW_OFFSET * normal @ R.T
+    vis = np.array(transmittance(scene, vector3f(origin), vector3f(np.tile(sun_fit, (len(p_fit), 1))),
+                                 mi.Float(dr.inf), hitlib.gaussian_nodes(scene)), np.float64)
     vis = np.where(facing, np.clip(vis, 0.0, 1.0), 0.0)
-    return (np.where(hit, true_vis.astype(np.float64), np.nan), np.where(hit, vis, np.nan))
+    return SunRays(hit, origin, sun_fit, T, true_vis, vis)
+
+
+def sun_reach(scene, gt_scene, frames, k, gt, cams, sun_gt, R):
+    """Per pixel of frame ``k``: 1 where the truth's meshes leave the true
+    surface point open to the sun ``sun_gt``, the same through the fitted
+    scene (NaN where the truth sees no surface)."""
+    r = sun_rays(scene, gt_scene, frames, k, gt, cams, sun_gt, R)
+    return (np.where(r.hit, r.true_vis.astype(np.float64), np.nan), np.where(r.hit, r.vis, np.nan))
 
 
 def collect(fit, frames_spec, spp):

@@ -30,15 +30,12 @@ import argparse  # noqa: E402
 import json  # noqa: E402
 
 import numpy as np  # noqa: E402
-import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
 import relight_breakdown as rb  # noqa: E402
 from mi_invrgbl.eval.ground_truth import gt_alignment, load_lights, source_number  # noqa: E402
-from mi_invrgbl.eval.inputs import read_map  # noqa: E402
 from mi_invrgbl.fit.sky_mask import PinholeProjection, sky_mask  # noqa: E402
 from mi_invrgbl.physics import hits as hitlib  # noqa: E402
-from mi_invrgbl.physics.lighting import SHADOW_OFFSET, transmittance  # noqa: E402
 from mi_invrgbl.scene.posing import set_frame  # noqa: E402
 from mi_invrgbl.synthetic.groundtruth import camera_rays, rows  # noqa: E402
 from street_truth import open_fit  # noqa: E402
@@ -71,23 +68,11 @@ def blockers(scene, gt_scene, frames, positions, gt, cams, sun_gt, R):
     nodes = hitlib.gaussian_nodes(scene)
     out = []
     for k in positions:
-        _, _, o, d, to_gt, n = frame_geometry(scene, frames, k, gt, cams)
-        depth = read_map(str(gt / "maps" / ("%06d_depth.exr" % n)))
-        depth = (depth[..., 0] if depth.ndim == 3 else depth).reshape(-1)
-        normal = read_map(str(gt / "maps" / ("%06d_normal.exr" % n))).reshape(-1, 3)
-        cam = np.asarray(frames[k].camera_to_world, np.float64)
-        p_fit = o + d * (depth / np.maximum(d @ cam[:3, 2], 1e-9))[:, None]
-        p_gt = p_fit @ to_gt[:3, :3].T + to_gt[:3, 3]
-        facing = (depth > 0) & ((normal @ sun_gt) > 0)
-        shadow = mi.Ray3f(rb.vector3f(p_gt + SHADOW_OFFSET * normal), rb.vector3f(np.tile(sun_gt, (len(p_gt), 1))))
-        lit_true = facing & ~np.array(gt_scene.ray_test(shadow), bool)
-        sun_fit = R @ sun_gt
-        org = p_fit + SHADOW_OFFSET * normal @ R.T
-        vis = np.array(transmittance(scene, rb.vector3f(org), rb.vector3f(np.tile(sun_fit, (len(org), 1))),
-                                     mi.Float(dr.inf), nodes), np.float64)
-        wrong = np.nonzero(lit_true & (vis < 0.5))[0]
+        r = rb.sun_rays(scene, gt_scene, frames, k, gt, cams, sun_gt, R)
+        wrong = np.nonzero(r.hit & r.true_vis & (r.vis < 0.5))[0]
         if wrong.size == 0:
             continue
+        org, sun_fit, to_gt = r.origin, r.sun_fit, r.to_gt
         rays = mi.Ray3f(rb.vector3f(org[wrong]), rb.vector3f(np.tile(sun_fit, (wrong.size, 1))))
         g = hitlib.eval_gaussian_hits(nodes, rays, hitlib.trace(scene, rays, 64, 1e-3, nodes))
         weight = np.array(hitlib.blend_weights(g)[0], np.float64)
