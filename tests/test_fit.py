@@ -1372,8 +1372,10 @@ def test_stage2_start_made_again_when_the_best_was_not_the_last(scene_path, tmp_
 def test_stage2_start_scores_the_facings_irradiance_against_the_selection(scene_path, tmp_path,
                                                                          monkeypatch):
     """Where the facings' sun irradiance disagrees with the lighting
-    selection's level, the start is made with each and the validation
-    frames choose; the chosen start's irradiance is the one in the scene."""
+    selection's level, the start is made with each; among those the
+    validation frames do not rule out, the least albedo spread within
+    LiDAR-albedo groups chooses, and the chosen start's irradiance is the
+    one in the scene."""
     from mi_invrgbl.fit import shading_init
     monkeypatch.setattr(shading_init, "MAX_EXCESS", 1e-3)     # every estimate "disagrees"
     monkeypatch.setattr(shading_init, "MAX_DISAGREEMENT", 1e-3)
@@ -1385,7 +1387,8 @@ def test_stage2_start_scores_the_facings_irradiance_against_the_selection(scene_
     sources = [c["sun_irradiance_from"] for c in cands]
     assert any(s.startswith("selection (facings gave") for s in sources) and "facings" in sources
     assert all(np.isfinite(c["psnr"]) for c in cands)
-    best = int(np.argmax([c["psnr"] for c in cands]))
+    assert all(c["albedo_spread"] is not None and np.isfinite(c["albedo_spread"]) for c in cands)
+    best = shading_init.choose_start([c["psnr"] for c in cands], [c["albedo_spread"] for c in cands])
     assert si["start_candidates"]["chosen"] == best
     assert si["sun_irradiance_from"] == sources[best]
 

@@ -211,3 +211,81 @@ def test_an_overruled_facing_estimate_is_recognised():
     _, none = reconcile_sun_irradiance(None, 1.5)
     assert not facings_overruled(agree) and facings_overruled(disagree)
     assert not facings_overruled(none)      # no facing estimate: nothing to try instead
+
+
+def _lit_blocks(seed=0, n=3000):
+    """Gaussians in 4 m blocks of one material each (LiDAR albedo and RGB
+    albedo shared within a block), half of them facing up and half a wall,
+    a third of them in shadow."""
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(0.0, 12.0, (n, 3))
+    block = np.floor(centres[:, :2] / 4.0).astype(int) @ np.array([3, 1])
+    lidar = np.array([0.15, 0.3, 0.45, 0.6, 0.75, 0.2, 0.35, 0.5, 0.65])[block]
+    albedo = lidar[:, None] * np.array([0.8, 1.0, 1.2])
+    normals = np.where((rng.uniform(size=n) < 0.5)[:, None], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0])
+    sky = np.full((n, 3), 0.25)
+    v = (rng.uniform(size=n) > 0.33).astype(float)
+    sun = np.array([0.3, 0.5, 0.81]) / np.linalg.norm([0.3, 0.5, 0.81])
+    E = 4.0
+    cos = np.maximum(normals @ sun, 0.0)
+    colour = albedo * (sky + E * (v * cos)[:, None] / np.pi)
+    return dict(centres=centres, lidar=lidar, albedo=albedo, normals=normals, sky=sky, v=v, sun=sun,
+                E=E, colour=colour)
+
+
+def _start_albedo(s, E, sun, v):
+    cos = np.maximum(s["normals"] @ sun, 0.0)
+    return shading_init.albedo_from_shading(s["colour"], s["sky"], E * (v * cos)[:, None] / np.pi)
+
+
+def test_albedo_spread_is_least_under_the_true_light():
+    s = _lit_blocks()
+    w = np.ones(len(s["lidar"]))
+    true = shading_init.albedo_spread(_start_albedo(s, s["E"], s["sun"], s["v"]), s["lidar"],
+                                      s["centres"], w)
+    assert true is not None and true < 1e-6
+    # A weak sun leaves the shadows in the albedo...
+    weak = shading_init.albedo_spread(_start_albedo(s, s["E"] / 6, s["sun"], s["v"]), s["lidar"],
+                                      s["centres"], w)
+    # ... a wrong direction (and the shadows it would cast elsewhere) puts its own there.
+    other = np.array([0.64, 0.63, 0.44]) / np.linalg.norm([0.64, 0.63, 0.44])
+    v_other = np.random.default_rng(1).permutation(s["v"])
+    wrong = shading_init.albedo_spread(_start_albedo(s, s["E"], other, v_other), s["lidar"],
+                                       s["centres"], w)
+    assert weak > 0.05 and wrong > 0.05, (weak, wrong)
+
+
+def test_albedo_spread_ignores_unseen_nan_and_small_groups():
+    s = _lit_blocks()
+    a = _start_albedo(s, s["E"] / 6, s["sun"], s["v"])
+    w = np.ones(len(a))
+    base = shading_init.albedo_spread(a, s["lidar"], s["centres"], w)
+    # Unseen Gaussians with any albedo do not count.
+    a2, w2 = a.copy(), w.copy()
+    a2[:100] = 1e-3
+    w2[:100] = 0.0
+    assert np.isclose(shading_init.albedo_spread(a2, s["lidar"], s["centres"], w2),
+                      shading_init.albedo_spread(a[100:], s["lidar"][100:], s["centres"][100:], w[100:]))
+    # NaN albedo and a LiDAR albedo of 0 or NaN drop the Gaussian.
+    a3, rho3 = a.copy(), s["lidar"].copy()
+    a3[0] = np.nan
+    rho3[1], rho3[2] = 0.0, np.nan
+    out = shading_init.albedo_spread(a3, rho3, s["centres"], w)
+    assert np.isfinite(out) and abs(out - base) < 0.1 * base
+    # No group with enough Gaussians, nothing seen, nothing at all: None.
+    assert shading_init.albedo_spread(a[:3], s["lidar"][:3], s["centres"][:3], w[:3]) is None
+    assert shading_init.albedo_spread(a, s["lidar"], s["centres"], np.zeros_like(w)) is None
+    assert shading_init.albedo_spread(a[:0], s["lidar"][:0], s["centres"][:0], w[:0]) is None
+
+
+def test_the_start_with_the_least_spread_wins_within_the_margin():
+    m = shading_init.START_PSNR_MARGIN
+    # Within the margin the spread decides, beyond it the images rule the start out.
+    assert shading_init.choose_start([27.2, 27.2 + 0.9 * m], [0.05, 0.20]) == 0
+    assert shading_init.choose_start([27.2, 27.2 + 1.1 * m], [0.05, 0.20]) == 1
+    assert shading_init.choose_start([18.1, 14.0, 17.8], [0.30, 0.01, 0.25]) == 2
+    # Without a spread for every start in reach, the best PSNR.
+    assert shading_init.choose_start([27.2, 27.8], [0.05, None]) == 1
+    assert shading_init.choose_start([27.2, 27.8], [None, 0.2]) == 1
+    assert shading_init.choose_start([27.2, 29.0], [None, 0.2]) == 1
+    assert shading_init.choose_start([27.2], [None]) == 0

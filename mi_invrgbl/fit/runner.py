@@ -543,11 +543,12 @@ def start_stage2(state: FitState, frozen, initialise=True):
                          si["facings"], 100 * si["shadowed"]))
         if "start_candidates" in si:
             sc = si["start_candidates"]
-            state.log("[fit] stage 2's start, validation PSNR under each sun the lighting kept: %s; "
-                      "kept #%d" % (", ".join(
-                          "#%d %s irradiance from %s %s dB" % (
+            state.log("[fit] stage 2's start under each sun the lighting kept (validation PSNR, "
+                      "albedo spread within LiDAR-albedo groups): %s; kept #%d" % (", ".join(
+                          "#%d %s irradiance from %s %s dB, spread %s" % (
                               i + 1, np.round(c["sun_direction"], 2).tolist(), c["sun_irradiance_from"],
-                              "-" if c["psnr"] is None else "%.2f" % c["psnr"])
+                              "-" if c["psnr"] is None else "%.2f" % c["psnr"],
+                              "-" if c.get("albedo_spread") is None else "%.4f" % c["albedo_spread"])
                           for i, c in enumerate(sc["candidates"])), sc["chosen"] + 1))
         if "start_roughness" in si:
             sr = si["start_roughness"]
