@@ -289,3 +289,10 @@ def test_the_start_with_the_least_spread_wins_within_the_margin():
     assert shading_init.choose_start([27.2, 27.8], [None, 0.2]) == 1
     assert shading_init.choose_start([27.2, 29.0], [None, 0.2]) == 1
     assert shading_init.choose_start([27.2], [None]) == 0
+
+
+def test_a_start_that_could_not_be_scored_is_never_chosen_for_its_spread():
+    inf = -np.inf
+    assert shading_init.choose_start([inf, 27.0, 26.5], [0.01, 0.3, 0.2]) == 2
+    assert shading_init.choose_start([inf, inf], [0.3, 0.2]) == 1
+    assert shading_init.choose_start([27.0, 26.8], [np.nan, 0.2]) == 0
