@@ -263,7 +263,11 @@ def albedo_spread(albedo, lidar_albedo, centres, weight):
     and a weak sun misplaces least. The albedo's spread instead grows with
     every shadow or facing the light leaves in it, whichever way it errs:
     too weak a sun leaves the real shadows in the albedo, a wrong direction
-    puts its own there."""
+    puts its own there. Measured on the streets
+    (``tests/bench/start_candidates.py``): it tells the facings' sun from
+    a weak one under nearly every direction, but not directions within
+    about 15 degrees of each other, and on one stage 1 it gave a
+    direction 37 degrees off a smaller spread than one 13 degrees off."""
     weight = np.asarray(weight, np.float64)
     ok = (weight > 0) & np.all(np.isfinite(albedo), axis=1) & np.isfinite(lidar_albedo) \
         & (np.asarray(lidar_albedo) > 0)

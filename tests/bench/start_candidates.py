@@ -59,7 +59,7 @@ def main():
     ap.add_argument("scene")
     ap.add_argument("--budget", default="8")
     ap.add_argument("--json")
-    args = ap.parse_args([a for a in _sys.argv[1:] if not a.startswith("--variant")])
+    args = ap.parse_args()      # (variant_choice took --variant out)
 
     import drjit as dr
     from mi_invrgbl import cli
