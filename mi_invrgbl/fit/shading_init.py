@@ -299,10 +299,11 @@ def choose_start(scores, spreads):
     None where not measured): among those within :data:`START_PSNR_MARGIN`
     of the best PSNR, the one with the least spread; the best PSNR where
     any of those has no spread. The margin keeps out starts the images
-    reject (the facings' sun under a wrong direction started 4-8 dB below
-    the best start on the streets and 4 dB below on the KITTI excerpt)
-    and lets through those near the truth's light (0.1-0.8 dB below the
-    best on the streets; ``tests/bench/start_candidates.py``). Non-finite
+    reject (the facings' sun under the lighting's candidates 31 and 34
+    degrees off started 6 and 8 dB below the best start on two streets,
+    and 4 dB below on the KITTI excerpt) and lets through those near the
+    truth's light (0.1-0.8 dB below the best on three streets;
+    ``tests/bench/start_candidates.py``). Non-finite
     scores arrive as -inf and are never within the margin of a finite one."""
     scores = np.asarray(scores, np.float64)
     best = int(np.argmax(scores))
