@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..physics.colour import LUMINANCE
-from .selection import surface_patches
+from .selection import PatchRegression, surface_patches
 
 #: Most rounds of visibility correction and re-estimation at stage 2's start,
 #: and the relative change of the sun's irradiance (luminance) that ends them.
@@ -273,19 +273,17 @@ def albedo_spread(albedo, lidar_albedo, centres, weight):
         & (np.asarray(lidar_albedo) > 0)
     if not ok.any():
         return None
-    y = np.log(np.maximum(np.asarray(albedo, np.float64)[ok] @ LUMINANCE, 1e-4))
+    luminance = np.asarray(albedo, np.float64)[ok] @ LUMINANCE
     cell = np.floor(np.asarray(centres, np.float64)[ok] / SPREAD_CELL).astype(np.int64)
     band = np.floor(np.log(np.asarray(lidar_albedo, np.float64)[ok]) / SPREAD_BIN).astype(np.int64)
     group = np.unique(np.column_stack([cell, band]), axis=0, return_inverse=True)[1].ravel()
-    w = weight[ok]
     big = (np.bincount(group) >= SPREAD_MIN_GROUP)[group]
     if not big.any():
         return None
-    group, y, w = np.unique(group[big], return_inverse=True)[1].ravel(), y[big], w[big]
-    wsum = np.bincount(group, w)
-    mean = np.bincount(group, w * y) / wsum
-    r = y - mean[group]
-    return float(np.sum(w * r * r) / np.sum(w))
+    # The lighting test's within-patch residual, on log albedo instead of
+    # log colour (the groups left empty weigh nothing).
+    within = PatchRegression(luminance[big], group[big], weight[ok][big])
+    return within.residual(within.y)
 
 
 #: How far (dB, on the validation frames) below the best start another
