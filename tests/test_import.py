@@ -743,3 +743,36 @@ def test_wall_extension_takes_its_seed_normal():
             cos[with_seed] = g["normals"][up] @ want
         assert np.all(cos[True] > 0.999)                   # the facade's normal, facing the sensor
         assert np.min(cos[False]) < 0.99                   # what the column alone gives
+
+
+def test_held_out_frames_give_the_gaussians_nothing(street_copy, tmp_path):
+    """A held-out frame's sweep and image are observations for ``eval`` and
+    nothing more: changing them (the sweep's ranges and intensities, the
+    image's colours) leaves every Gaussian of the import bit for bit as it
+    was, while the held-out observations written do change."""
+    from mi_invrgbl.io.triangulate import held_out
+    import cv2
+
+    frames = Frames.load(import_scene(street_copy, tmp_path / "a" / "scene.xml",
+                                      ImportOptions(**TINY_OPTS), log=_quiet).scene)
+    k = next(i for i in range(len(frames)) if held_out(i))
+    assert frames[k].held_out
+    seq = street_copy / "sequences" / "00"
+    sweep = seq / "velodyne" / ("%06d.bin" % k)
+    data = np.fromfile(sweep, "<f4").reshape(-1, 4)
+    # Moved along their own rays, so that the beam table (elevations) stays.
+    write_velodyne(sweep, 0.8 * data[:, :3], 1.0 - data[:, 3])
+    image = seq / "image_2" / ("%06d.png" % k)
+    img = cv2.imread(str(image))
+    img[:] = (255, 0, 255)
+    cv2.imwrite(str(image), img)
+    changed = Frames.load(import_scene(street_copy, tmp_path / "b" / "scene.xml",
+                                       ImportOptions(**TINY_OPTS), log=_quiet).scene)
+
+    assert not np.array_equal(np.load(frames[k].points), np.load(changed[k].points))
+    assert not np.array_equal(cv2.imread(str(frames[k].image)), cv2.imread(str(changed[k].image)))
+    for name in ["background.ply"] + ["%s.ply" % o for o in frames.objects]:
+        a, b = read_ply(str(tmp_path / "a" / name)), read_ply(str(tmp_path / "b" / name))
+        assert len(a) == len(b) > 0
+        for key in ("centers", "scales", "quaternions", "normals", "albedo", "lidar_albedo"):
+            assert np.array_equal(getattr(a, key), getattr(b, key)), (name, key)

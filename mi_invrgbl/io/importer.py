@@ -18,10 +18,11 @@ odometry
     The world frame is the first imported frame's LiDAR frame.
 accumulate
     Every sweep in the world frame; its range image (``azimuth_steps`` wide,
-    rows = beams) for ``observations/lidar_NNNN.exr``; points inside a
-    dynamic object's box (in the frames it is labelled or interpolated)
-    go to the object, in its own frame; the rest within
-    [``min_range``, ``max_range``] to the background.
+    rows = beams) for ``observations/lidar_NNNN.exr``. Of the training
+    sweeps only (a held-out frame's sweep is an observation for ``eval``,
+    nothing more), points inside a dynamic object's box (in the frames it
+    is labelled or interpolated) go to the object, in its own frame; the
+    rest within [``min_range``, ``max_range``] to the background.
 extend walls
     A LiDAR sees nothing above its top beam, so the upper part of a facade
     that a camera sees would have no Gaussians at all. Vertical structures
@@ -52,9 +53,12 @@ objects
     metres up (:func:`mi_invrgbl.io.objects.extend_object_top`), on top of
     the ``object_points``.
 colours
-    Albedo from the camera images: each Gaussian's centre (objects at their
-    per-frame pose) projected into every frame, z-buffered against all
-    centres, averaged in linear RGB (weights 1/depth); never seen -> 0.5.
+    Albedo from the training images: each Gaussian's centre (objects at
+    their per-frame pose) projected into every training frame, z-buffered
+    against all centres, averaged in linear RGB (weights 1/depth); never
+    seen -> 0.5. No held-out image or sweep gives a Gaussian its place,
+    colour or LiDAR albedo (every sweep still enters the poses: the
+    odometry and the moving objects' tracks, as labels would).
 write
     Everything into a temporary sibling folder, a ``mi.load_file`` check of
     the scene, then one rename: a folder under the output name is complete.
@@ -532,6 +536,13 @@ def _accumulate(src, state: ImportState, opts, log):
         rimgs.append(ri)
         methods.append(ri.method)
         tables.append(ri.elevations)
+        if held_out(i):
+            # A held-out sweep is written as an observation for `eval` and
+            # nothing more: were its points Gaussians (and its intensities
+            # their LiDAR albedo), `eval` would score the fit on points it
+            # was built from, against a nearest-neighbour baseline that only
+            # has the training sweeps.
+            continue
         rng = np.linalg.norm(pts.astype(np.float64), axis=1)
         keep = (rng >= opts.min_range) & (rng <= opts.max_range)
         for o in dyn:
@@ -576,9 +587,10 @@ def _accumulate(src, state: ImportState, opts, log):
     state.counts["points_total"] = int(sum(len(w) for w in world_points))
     for o in dyn:
         state.counts["points_" + o.name] = int(sum(len(p) for p in o.points))
-    log("[import] %d background points from %d sweeps (%d total; %d in moving objects)"
-        % (n_acc, len(world_points), state.counts["points_total"],
-           sum(sum(len(p) for p in o.points) for o in dyn)))
+    log("[import] %d background points from %d training sweeps (%d in all %d sweeps; %d in "
+        "moving objects)" % (n_acc, sum(not held_out(i) for i in range(len(world_points))),
+                             state.counts["points_total"], len(world_points),
+                             sum(sum(len(p) for p in o.points) for o in dyn)))
 
 
 # -- wall extension ---------------------------------------------------------------------
@@ -804,6 +816,8 @@ def _colours(state: ImportState, opts, log):
     acc_obj = {o.name: ig.ColourAccumulator(len(state.object_clouds[o.name]["centers"]))
                for o in objs}
     for i, cam in enumerate(state.cam_poses):
+        if held_out(i):     # held-out images are for `eval` alone
+            continue
         w2c = np.linalg.inv(cam)
         clouds = [("", bg)]
         for o in objs:
