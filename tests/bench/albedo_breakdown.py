@@ -10,9 +10,12 @@ frame), then the error is split by the ground truth's mesh: each material's
 share of pixels, its true and fitted (scaled) mean albedo, its RMSE, its share
 of the squared error, its median normal error and share of the summed normal
 error, its true and fitted median roughness, and the true sun visibility
-there. A row whose fitted albedo is far darker than the truth while the truth
-says the material is in shadow is shading the fit credits to the wrong light;
-a constant albedo (every pixel at the true mean) is printed for scale.
+there. Before the table, the normal error is split into pixels at the
+truth's edges (next to another mesh or a turn of the normal), tree crowns
+and the rest, each with its share of the mean. A row whose fitted albedo
+is far darker than the truth while the truth says the material is in
+shadow is shading the fit credits to the wrong light; a constant albedo
+(every pixel at the true mean) is printed for scale.
 """
 
 import sys as _sys, pathlib as _pathlib
@@ -35,10 +38,32 @@ from street_truth import open_fit  # noqa: E402
 
 #: Materials below this share of the scored pixels are pooled into "other".
 MIN_SHARE = 0.01
+#: A normal turning by more than this between neighbouring pixels of the
+#: truth marks an edge (a box's corner turns by 90, a tree crown's facets by
+#: about 15).
+EDGE_TURN_DEG = 20.0
 
 
 def first_channel(x):
     return x[..., 0] if x is not None and x.ndim == 3 else x
+
+
+def truth_edges(mesh, normal, turn_deg=EDGE_TURN_DEG):
+    """Pixels on either side of a step in the truth's maps: another mesh
+    or a normal turned by more than ``turn_deg`` in the next pixel across or
+    down. There a pixel's footprint straddles two surfaces; a fit whose
+    Gaussians are a pixel too wide or too soft pays the whole angle."""
+    cos_max = np.cos(np.radians(turn_deg))
+    edge = np.zeros(mesh.shape, bool)
+    for axis in (0, 1):
+        a = [slice(None)] * 2
+        b = [slice(None)] * 2
+        a[axis], b[axis] = slice(1, None), slice(None, -1)
+        a, b = tuple(a), tuple(b)
+        step = (mesh[a] != mesh[b]) | (np.sum(normal[a] * normal[b], axis=-1) < cos_max)
+        edge[a] |= step
+        edge[b] |= step
+    return edge
 
 
 def collect(fit, frames_spec):
@@ -46,7 +71,7 @@ def collect(fit, frames_spec):
     frames, gt, positions, scene = open_fit(fit, frames_spec)
     integ = integrator_like(scene, None)
     R = gt_alignment(frames, positions, gt)
-    cols = {k: [] for k in ("fit", "true", "mesh", "angle", "sun", "rough", "true_rough")}
+    cols = {k: [] for k in ("fit", "true", "mesh", "angle", "sun", "rough", "true_rough", "edge")}
     for k in positions:
         sensor, _ = set_frame(scene, frames, k)
         cam = render_camera(scene, sensor, 0, integ)
@@ -56,7 +81,9 @@ def collect(fit, frames_spec):
         m = (mesh >= 0) & (alpha > ALPHA_MIN)
         normal = cam["normal"][m]
         normal = normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
-        true_n = read_map(base + "normal.exr")[m] @ R.T
+        true_map = read_map(base + "normal.exr")
+        true_n = true_map[m] @ R.T
+        cols["edge"].append(truth_edges(mesh, true_map)[m])
         sun = read_map(base + "sun_visibility.exr")
         cols["fit"].append(cam["albedo"][m] / alpha[m][:, None])
         cols["true"].append(read_map(base + "albedo.exr")[m])
@@ -70,6 +97,10 @@ def collect(fit, frames_spec):
     return {k: np.concatenate(v) for k, v in cols.items()}, names
 
 
+def label_of(data, names):
+    return np.array([names.get(int(i), str(i)) for i in data["mesh"]])
+
+
 def report(fit, data, names):
     p, t = data["fit"], data["true"]
     scale = np.sum(p * t, 0) / np.maximum(np.sum(p * p, 0), 1e-12)
@@ -81,10 +112,16 @@ def report(fit, data, names):
                                                     np.mean(data["angle"]), np.median(data["angle"]),
                                                     np.round(scale, 3)))
     angle = data["angle"]
+    edge, crown = data["edge"], label_of(data, names) == "tree_crown"
+    for what, sel in (("at the truth's edges", edge), ("tree crowns off the edges", crown & ~edge),
+                      ("everything else", ~edge & ~crown)):
+        print("normal error %s: %.3f of the pixels, mean %.1f deg, %.2f deg of the mean"
+              % (what, sel.mean(), np.mean(angle[sel]) if sel.any() else 0.0,
+                 angle[sel].sum() / max(len(angle), 1)))
     print("| material | pixels | true albedo | fitted (scaled) | RMSE | error share | normal [deg] "
           "| normal share | roughness (true, fitted) | true sun vis |")
     print("|---|---|---|---|---|---|---|---|---|---|")
-    label = np.array([names.get(int(i), str(i)) for i in data["mesh"]])
+    label = label_of(data, names)
     kinds = sorted(set(label), key=lambda n: -np.sum(err2[label == n]))
     small = [n for n in kinds if np.mean(label == n) < MIN_SHARE]
     for name in [n for n in kinds if n not in small] + (["other"] if small else []):
