@@ -39,8 +39,7 @@ from street_truth import open_fit  # noqa: E402
 #: Materials below this share of the scored pixels are pooled into "other".
 MIN_SHARE = 0.01
 #: A normal turning by more than this between neighbouring pixels of the
-#: truth marks an edge (a box's corner turns by 90, a tree crown's facets by
-#: about 15).
+#: truth marks an edge (a box's corner turns by 90).
 EDGE_TURN_DEG = 20.0
 
 
@@ -51,8 +50,8 @@ def first_channel(x):
 def truth_edges(mesh, normal, turn_deg=EDGE_TURN_DEG):
     """Pixels on either side of a step in the truth's maps: another mesh
     or a normal turned by more than ``turn_deg`` in the next pixel across or
-    down. There a pixel's footprint straddles two surfaces; a fit whose
-    Gaussians are a pixel too wide or too soft pays the whole angle."""
+    down. There a pixel's footprint straddles two surfaces, and a fit whose
+    Gaussians blend the two sides pays up to the angle between them."""
     cos_max = np.cos(np.radians(turn_deg))
     edge = np.zeros(mesh.shape, bool)
     for axis in (0, 1):
