@@ -111,7 +111,8 @@ def report(fit, data, names):
                                                     np.mean(data["angle"]), np.median(data["angle"]),
                                                     np.round(scale, 3)))
     angle = data["angle"]
-    edge, crown = data["edge"], label_of(data, names) == "tree_crown"
+    label = label_of(data, names)
+    edge, crown = data["edge"], label == "tree_crown"
     for what, sel in (("at the truth's edges", edge), ("tree crowns off the edges", crown & ~edge),
                       ("everything else", ~edge & ~crown)):
         print("normal error %s: %.3f of the pixels, mean %.1f deg, %.2f deg of the mean"
@@ -120,7 +121,6 @@ def report(fit, data, names):
     print("| material | pixels | true albedo | fitted (scaled) | RMSE | error share | normal [deg] "
           "| normal share | roughness (true, fitted) | true sun vis |")
     print("|---|---|---|---|---|---|---|---|---|---|")
-    label = label_of(data, names)
     kinds = sorted(set(label), key=lambda n: -np.sum(err2[label == n]))
     small = [n for n in kinds if np.mean(label == n) < MIN_SHARE]
     for name in [n for n in kinds if n not in small] + (["other"] if small else []):
