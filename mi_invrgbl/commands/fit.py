@@ -94,6 +94,10 @@ FLAGS = (
      "keep the moving objects' poses as imported (default: stage 1 corrects each object's pose "
      "at every training frame from the images and LiDAR; other frames interpolate)",
      {"invert": True}),
+    ("--free-object-extent", "object_bounds",
+     "let a moving object's Gaussians grow past the box of its imported centres (default: stage 1 "
+     "keeps them inside it, so an object cannot draw its own shadow on the road)",
+     {"invert": True}),
     ("--keep-sky-lookalikes", "prune_sky_lookalikes",
      "keep stage-1 Gaussians that have the sky's colour and only sky behind them (default: "
      "removed before stage 2; they cast shadows no roof casts)", {"invert": True}),

@@ -17,7 +17,7 @@ MODEL_FIELDS = ("batch_rays", "lidar_batch_rays", "fit_width", "lidar_columns", 
                 "max_gaussians", "stage1_range", "stage1_drop", "stage1_sky", "seed", "fit_response",
                 "sun_candidates", "sun_gaussians", "per_frame_visibility", "learn_sun_direction",
                 "prune_sky_lookalikes", "sky_mask", "sun_visibility", "validation_every",
-                "object_poses")
+                "object_poses", "object_bounds")
 
 
 #: Largest ``pixel_grid`` (rays per pixel side in stage 2's camera hits).
@@ -179,6 +179,9 @@ class FitConfig:
     sun_visibility: str = "learn"  # learn | trace: the paper's per-Gaussian v_sun, or traced only
     #: Stage 1 corrects the moving objects' per-frame poses (.object_poses).
     object_poses: bool = True
+    #: Stage 1 keeps each moving object's Gaussians inside the box of its
+    #: imported centres (.object_bounds): the object cannot paint its shadow.
+    object_bounds: bool = True
     #: Every n-th training frame (``index % n == min(2, n // 2)``, :func:`.init.
     #: split_validation`) is a validation frame:
     #: not trained on, it scores the model selection. 0: no validation split

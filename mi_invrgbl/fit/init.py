@@ -15,6 +15,7 @@ from ..physics.sh import num_coeffs
 from ..scene.frames import Frames
 from ..scene.loading import load_scene
 from .config import FitConfig
+from .object_bounds import object_boxes
 from .model import GaussianModel
 from .observations import load_observations
 from .render import Response, dominant_hit
@@ -92,6 +93,9 @@ def load_state(scene_path, config: FitConfig, log=print) -> FitState:
         held_out_frames=held_out,
         intensity_scale=float(np.percentile(seen, 95)) if seen.size else 1.0,
         response=Response(mi.Float(2.0), mi.Float(1.0), dr.ones(mi.Float, max(n_beams, 1))))
+    if config.object_bounds:
+        # From the import's centres, before a resume loads its checkpoint.
+        state.object_boxes = object_boxes(model)
     if config.object_poses:
         from .object_poses import ObjectPoseFit
         fit = ObjectPoseFit(observations, train, [n for n, v in model.nodes.items() if v.dynamic])

@@ -170,7 +170,13 @@ class Stage1:
                        before_step=self._accumulate_gradients)
         if ok:
             self.opt.clamp()
+            self.hold_objects()
         return float(total[0]), {k: float(v[0]) for k, v in terms.items()}, ok
+
+    def hold_objects(self):
+        """The moving objects' Gaussians back inside their boxes (:mod:`.object_bounds`)."""
+        for box in self.ctx.object_boxes:
+            box.apply(self.opt.adam)
 
     def after_step(self, it, total, progress=None):
         """Densify every ``densify_every`` iterations in the first
@@ -309,6 +315,7 @@ class Stage1:
             total_now = total_now - len(cloud) + node.count
         self.grad_accum = {}
         self.opt = self.opt.rebuild(self.variables(), parents, fresh)
+        self.hold_objects()
         return report
 
 

@@ -74,6 +74,9 @@ class FitState:
     sun_visibility_learned: bool = False
     #: Stage 1's per-frame corrections of the moving objects' poses (None: off or nothing moves).
     object_poses: object = None
+    #: The moving objects' boxes stage 1 keeps their Gaussians in
+    #: (:class:`.object_bounds.ObjectBox`; empty: off or nothing moves).
+    object_boxes: list = field(default_factory=list)
     selection: dict = field(default_factory=dict)
     times: dict = field(default_factory=dict)
     iterations: dict = field(default_factory=dict)   # stage -> last iteration run
