@@ -10,7 +10,8 @@ import mitsuba as mi
 from fit_scene import build_with_block
 from mi_invrgbl.fit.config import FitConfig
 from mi_invrgbl.fit.init import load_state
-from mi_invrgbl.fit.object_bounds import CENTRE_MARGIN, MARGIN, SUPPORT, ObjectBox
+from mi_invrgbl.fit.object_bounds import CENTRE_MARGIN, MARGIN, SUPPORT, ObjectBox, boxed_objects
+from mi_invrgbl.io.motion import FROM_LIDAR_MOTION
 from mi_invrgbl.fit.steps import make_optimizer
 from mi_invrgbl.physics.gaussian_ply import quaternion_to_matrix
 
@@ -79,6 +80,18 @@ def test_a_box_needs_finite_centres():
     box = ObjectBox.around("car", np.array([[0.0, 1.0, 2.0], [np.nan, 0, 0], [1.0, -1.0, 0.5]]))
     np.testing.assert_array_equal(box.lo, [0.0, -1.0, 0.5])
     np.testing.assert_array_equal(box.hi, [1.0, 1.0, 2.0])
+
+
+def test_only_objects_whose_extent_the_import_knew_are_boxed():
+    """A track found by LiDAR motion has the box of the points seen of it:
+    left free. Labelled tracks and objects without a track report are boxed."""
+    from types import SimpleNamespace as NS
+    frames = NS(objects={"object_0": NS(track_id=0), "object_1000": NS(track_id=1000),
+                         "object_7": NS(track_id=7)},
+                extra={"tracks": [{"track_id": 0, "kind": "Car"},
+                                  {"track_id": 1000, "kind": "moving", "from": FROM_LIDAR_MOTION}]})
+    assert boxed_objects(frames) == {"object_0", "object_7"}
+    assert boxed_objects(NS(objects=frames.objects, extra={})) == set(frames.objects)
 
 
 @pytest.fixture(scope="module")

@@ -95,8 +95,9 @@ FLAGS = (
      "at every training frame from the images and LiDAR; other frames interpolate)",
      {"invert": True}),
     ("--free-object-extent", "object_bounds",
-     "let a moving object's Gaussians grow past the box of its imported centres (default: stage 1 "
-     "keeps them inside it, so an object cannot draw its own shadow on the road)",
+     "let a labelled moving object's Gaussians grow past the box of its imported centres "
+     "(default: stage 1 keeps them inside it, so an object cannot draw its own shadow on the "
+     "road; objects the import found by LiDAR motion are never held)",
      {"invert": True}),
     ("--keep-sky-lookalikes", "prune_sky_lookalikes",
      "keep stage-1 Gaussians that have the sky's colour and only sky behind them (default: "

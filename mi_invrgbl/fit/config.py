@@ -179,8 +179,8 @@ class FitConfig:
     sun_visibility: str = "learn"  # learn | trace: the paper's per-Gaussian v_sun, or traced only
     #: Stage 1 corrects the moving objects' per-frame poses (.object_poses).
     object_poses: bool = True
-    #: Stage 1 keeps each moving object's Gaussians inside the box of its
-    #: imported centres (.object_bounds): the object cannot paint its shadow.
+    #: Stage 1 keeps each labelled moving object's Gaussians inside the box
+    #: of its imported centres (.object_bounds): it cannot paint its shadow.
     object_bounds: bool = True
     #: Every n-th training frame (``index % n == min(2, n // 2)``, :func:`.init.
     #: split_validation`) is a validation frame:

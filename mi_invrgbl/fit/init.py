@@ -15,7 +15,7 @@ from ..physics.sh import num_coeffs
 from ..scene.frames import Frames
 from ..scene.loading import load_scene
 from .config import FitConfig
-from .object_bounds import object_boxes
+from .object_bounds import boxed_objects, object_boxes
 from .model import GaussianModel
 from .observations import load_observations
 from .render import Response, dominant_hit
@@ -95,7 +95,7 @@ def load_state(scene_path, config: FitConfig, log=print) -> FitState:
         response=Response(mi.Float(2.0), mi.Float(1.0), dr.ones(mi.Float, max(n_beams, 1))))
     if config.object_bounds:
         # From the import's centres, before a resume loads its checkpoint.
-        state.object_boxes = object_boxes(model)
+        state.object_boxes = object_boxes(model, boxed_objects(frames))
     if config.object_poses:
         from .object_poses import ObjectPoseFit
         fit = ObjectPoseFit(observations, train, [n for n, v in model.nodes.items() if v.dynamic])

@@ -71,6 +71,10 @@ import numpy as np
 from . import init_gaussians as ig
 from .objects import ObjectTrack, fill_poses, in_box
 
+#: A track's ``from`` in frames.json's ``tracks`` when this module found it
+#: (its box is what the LiDAR saw of the object, not a label's).
+FROM_LIDAR_MOTION = "LiDAR motion"
+
 
 #: a cluster grown around moving points must be at least this share moving
 MIN_SEED_FRACTION = 0.25
@@ -763,7 +767,7 @@ def import_step(src, state, opts, log, options: MotionOptions | None = None):
         state.object_report.append({"track_id": o.track_id, "kind": o.kind,
                                        "displacement_m": o.displacement_m, "moving": True,
                                        "dynamic": True, "labelled_frames": int(o.labelled.sum()),
-                                       "from": "LiDAR motion"})
+                                       "from": FROM_LIDAR_MOTION})
         log("[import] moving object %d from the LiDAR: %d frames, %.2f m travelled, "
             "box %.1f x %.1f x %.1f m" % (o.track_id, int(o.labelled.sum()), o.displacement_m,
                                           *o.size_hwl[::-1]))
