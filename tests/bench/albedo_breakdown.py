@@ -12,7 +12,9 @@ of the squared error, its median normal error and share of the summed normal
 error, its true and fitted median roughness, and the true sun visibility
 there. Before the table, the normal error is split into pixels at the
 truth's edges (next to another mesh or a turn of the normal), tree crowns
-and the rest, each with its share of the mean. A row whose fitted albedo
+and the rest, each with its share of the mean, and the error on other
+meshes next to the moving objects (where a car's own Gaussians could draw
+its shadow on the road). A row whose fitted albedo
 is far darker than the truth while the truth says the material is in
 shadow is shading the fit credits to the wrong light; a constant albedo
 (every pixel at the true mean) is printed for scale.
@@ -31,7 +33,8 @@ import mitsuba as mi  # noqa: E402,F401
 
 import mi_invrgbl  # noqa: E402,F401
 from mi_invrgbl.eval.ground_truth import ALPHA_MIN, gt_alignment, source_number  # noqa: E402
-from mi_invrgbl.eval.inputs import read_map  # noqa: E402
+from mi_invrgbl.eval import metrics as M  # noqa: E402
+from mi_invrgbl.eval.inputs import read_map, read_png  # noqa: E402
 from mi_invrgbl.eval.rendering import integrator_like, render_camera  # noqa: E402
 from mi_invrgbl.scene.posing import set_frame  # noqa: E402
 from street_truth import open_fit  # noqa: E402
@@ -41,6 +44,9 @@ MIN_SHARE = 0.01
 #: A normal turning by more than this between neighbouring pixels of the
 #: truth marks an edge (a box's corner turns by 90).
 EDGE_TURN_DEG = 20.0
+#: Pixels of other meshes within this many pixels of a moving object count
+#: as next to it (where a car's own Gaussians could draw its shadow).
+NEAR_MOVING_PX = 15
 
 
 def first_channel(x):
@@ -65,17 +71,35 @@ def truth_edges(mesh, normal, turn_deg=EDGE_TURN_DEG):
     return edge
 
 
+def near_moving(mesh, moving_ids, px=NEAR_MOVING_PX):
+    """Pixels of other meshes within ``px`` pixels (a square) of a moving mesh."""
+    import cv2
+    on = np.isin(mesh, list(moving_ids))
+    near = cv2.dilate(on.astype(np.uint8), np.ones((2 * px + 1, 2 * px + 1), np.uint8)) > 0
+    return near & ~on
+
+
 def collect(fit, frames_spec):
     """Per scored pixel: fitted albedo, true albedo, mesh id, normal error, true sun visibility."""
     frames, gt, positions, scene = open_fit(fit, frames_spec)
     integ = integrator_like(scene, None)
     R = gt_alignment(frames, positions, gt)
-    cols = {k: [] for k in ("fit", "true", "mesh", "angle", "sun", "rough", "true_rough", "edge")}
+    meshes = json.loads((gt / "materials.json").read_text())["meshes"]
+    moving_ids = {d["mesh_id"] for d in meshes if d.get("dynamic")}
+    cols = {k: [] for k in ("fit", "true", "mesh", "angle", "sun", "rough", "true_rough", "edge",
+                            "near_moving")}
+    # Every pixel's squared sRGB error, and whether it lies on or next to a
+    # moving object (the image's PSNR split, sky included).
+    image_err, image_near = [], []
     for k in positions:
         sensor, _ = set_frame(scene, frames, k)
         cam = render_camera(scene, sensor, 0, integ)
         base = str(gt / "maps" / ("%06d_" % source_number(frames[k])))
         mesh = first_channel(read_map(base + "mesh_id.exr"))
+        if frames[k].image is not None:
+            pred = np.clip(M.linear_to_srgb(cam["rgb"]), 0.0, 1.0)
+            image_err.append(np.mean((pred - read_png(frames[k].image)) ** 2, axis=-1).ravel())
+            image_near.append((near_moving(mesh, moving_ids) | np.isin(mesh, list(moving_ids))).ravel())
         alpha = cam["alpha"]
         m = (mesh >= 0) & (alpha > ALPHA_MIN)
         normal = cam["normal"][m]
@@ -83,6 +107,7 @@ def collect(fit, frames_spec):
         true_map = read_map(base + "normal.exr")
         true_n = true_map[m] @ R.T
         cols["edge"].append(truth_edges(mesh, true_map)[m])
+        cols["near_moving"].append(near_moving(mesh, moving_ids)[m])
         sun = read_map(base + "sun_visibility.exr")
         cols["fit"].append(cam["albedo"][m] / alpha[m][:, None])
         cols["true"].append(read_map(base + "albedo.exr")[m])
@@ -92,8 +117,11 @@ def collect(fit, frames_spec):
         cols["rough"].append(first_channel(cam["roughness"])[m] / alpha[m])
         rough = first_channel(read_map(base + "roughness.exr"))
         cols["true_rough"].append(rough[m] if rough is not None else np.full(m.sum(), np.nan))
-    names = {d["mesh_id"]: d["name"] for d in json.loads((gt / "materials.json").read_text())["meshes"]}
-    return {k: np.concatenate(v) for k, v in cols.items()}, names
+    names = {d["mesh_id"]: d["name"] for d in meshes}
+    out = {k: np.concatenate(v) for k, v in cols.items()}
+    if image_err:
+        out["image_err"], out["image_near"] = np.concatenate(image_err), np.concatenate(image_near)
+    return out, names
 
 
 def label_of(data, names):
@@ -118,6 +146,19 @@ def report(fit, data, names):
         print("normal error %s: %.3f of the pixels, mean %.1f deg, %.2f deg of the mean"
               % (what, sel.mean(), np.mean(angle[sel]) if sel.any() else 0.0,
                  angle[sel].sum() / max(len(angle), 1)))
+    near = data["near_moving"]
+    print("normal error next to the moving objects (other meshes within %d px): %.3f of the pixels, "
+          "mean %.1f deg, %.2f deg of the mean" % (NEAR_MOVING_PX, near.mean(),
+                                                   np.mean(angle[near]) if near.any() else 0.0,
+                                                   angle[near].sum() / max(len(angle), 1)))
+    if "image_err" in data:
+        err, zone = data["image_err"], data["image_near"]
+        psnr = lambda e: 10 * np.log10(1.0 / max(np.mean(e), 1e-20)) if len(e) else float("nan")  # noqa: E731
+        # Pooled over every pixel of the frames, at the sensor's own samples
+        # per pixel: close to, not the same as, eval's per-frame mean at 32.
+        print("PSNR pooled over the frames (sRGB): %.2f dB; on and next to the moving objects "
+              "(%.3f of the pixels) %.2f dB, elsewhere %.2f dB"
+              % (psnr(err), zone.mean(), psnr(err[zone]), psnr(err[~zone])))
     print("| material | pixels | true albedo | fitted (scaled) | RMSE | error share | normal [deg] "
           "| normal share | roughness (true, fitted) | true sun vis |")
     print("|---|---|---|---|---|---|---|---|---|---|")
