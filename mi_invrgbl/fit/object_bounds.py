@@ -4,19 +4,19 @@ A moving object is a rigid node: whatever its Gaussians draw moves with it.
 Stage 1 fits colour without light, so a car's shadow on the road, which
 moves with the car, is drawn best by the car's own Gaussians: on the
 synthetic street the lowest ones grew flat and 0.6-1.2 m wide, reached up to
-1.9 m past the car's box and painted the shadow dark onto the road. Stage 2
-then turned their normals away from the sun to keep them dark. In the
-held-out frames the road pixels within 15 pixels of the car came out 34 deg
-off the road's normal on average, 1.9 deg of the street's 15.1 deg mean
-normal error (0.7 deg off with the object's opacities set to zero). A
-shadow belongs to the light (``fit --per-frame-visibility`` traces it per
-frame), not to the object's shape.
+1.9 m past the car's box and painted the shadow dark onto the road, with
+normals of the car's, not the road's. In the held-out frames the pixels of
+other meshes within 15 pixels of the car came out 24.7 deg off the truth's
+normal on average, 2.85 deg of the street's 15.1 deg mean normal error
+(``tests/bench/albedo_breakdown.py``). A shadow belongs to the light
+(``fit --per-frame-visibility`` traces it per frame), not to the object's
+shape.
 
 So after every stage-1 step each Gaussian of a moving object whose whole
 extent the import knew (a labelled object, :func:`boxed_objects`) is held
 inside the box (object frame) spanned by the import's Gaussian centres for
-it (the label's box: the LiDAR points it held, and samples on its sides and
-top where they were few): its centre is clipped into that box grown by
+it (the LiDAR points in the label's box grown by the import's margin, and
+samples on the box's sides and top where they were few): its centre is clipped into that box grown by
 :data:`CENTRE_MARGIN`, and where its support (:data:`SUPPORT` standard
 deviations along the box's axes, through its rotation) reaches more than
 :data:`MARGIN` past a face, all three of its scales shrink by the same
