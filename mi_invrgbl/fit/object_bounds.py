@@ -82,14 +82,11 @@ class ObjectBox:
             c_flat, s_flat, q_flat = (dr.detach(adam[k]) for k in (kc, ks, kq))
             c = [dr.gather(mi.Float, c_flat, idx3 + k) for k in range(3)]
             log_s = [dr.gather(mi.Float, s_flat, idx3 + k) for k in range(3)]
-            q = [dr.gather(mi.Float, q_flat, idx4 + k) for k in range(4)]   # x y z w
-            inv = dr.rsqrt(dr.maximum(sum(dr.square(v) for v in q), 1e-20))
-            x, y, z, w = (v * inv for v in q)
-            # Rotation matrix of the unit quaternion, row by row (row a: the
-            # box's axis a in the Gaussian's own axes).
-            rows = ((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
-                    (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
-                    (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
+            q = mi.Quaternion4f(*[dr.gather(mi.Float, q_flat, idx4 + k) for k in range(4)])
+            # As the renderer reads it (physics.hits.gather_geometry): normalised.
+            q = q * dr.rsqrt(dr.maximum(dr.squared_norm(q), 1e-20))
+            # Row a: the box's axis a in the Gaussian's own axes.
+            rows = dr.quat_to_matrix(mi.Matrix3f, q)
             s2 = [dr.square(dr.exp(v)) for v in log_s]
             factor = mi.Float(1.0)
             for a in range(3):

@@ -88,18 +88,19 @@ def collect(fit, frames_spec):
     moving_ids = {d["mesh_id"] for d in meshes if d.get("dynamic")}
     cols = {k: [] for k in ("fit", "true", "mesh", "angle", "sun", "rough", "true_rough", "edge",
                             "near_moving")}
-    # Every pixel's squared sRGB error, and whether it lies on or next to a
-    # moving object (the image's PSNR split, sky included).
-    image_err, image_near = [], []
+    # Every pixel's rendered and observed sRGB colour, and whether it lies
+    # on or next to a moving object (the image's PSNR split, sky included).
+    image_pred, image_obs, image_near = [], [], []
     for k in positions:
         sensor, _ = set_frame(scene, frames, k)
         cam = render_camera(scene, sensor, 0, integ)
         base = str(gt / "maps" / ("%06d_" % source_number(frames[k])))
         mesh = first_channel(read_map(base + "mesh_id.exr"))
+        near = near_moving(mesh, moving_ids)
         if frames[k].image is not None:
-            pred = np.clip(M.linear_to_srgb(cam["rgb"]), 0.0, 1.0)
-            image_err.append(np.mean((pred - read_png(frames[k].image)) ** 2, axis=-1).ravel())
-            image_near.append((near_moving(mesh, moving_ids) | np.isin(mesh, list(moving_ids))).ravel())
+            image_pred.append(np.clip(M.linear_to_srgb(cam["rgb"]), 0.0, 1.0).reshape(-1, 3))
+            image_obs.append(read_png(frames[k].image).reshape(-1, 3))
+            image_near.append((near | np.isin(mesh, list(moving_ids))).ravel())
         alpha = cam["alpha"]
         m = (mesh >= 0) & (alpha > ALPHA_MIN)
         normal = cam["normal"][m]
@@ -107,7 +108,7 @@ def collect(fit, frames_spec):
         true_map = read_map(base + "normal.exr")
         true_n = true_map[m] @ R.T
         cols["edge"].append(truth_edges(mesh, true_map)[m])
-        cols["near_moving"].append(near_moving(mesh, moving_ids)[m])
+        cols["near_moving"].append(near[m])
         sun = read_map(base + "sun_visibility.exr")
         cols["fit"].append(cam["albedo"][m] / alpha[m][:, None])
         cols["true"].append(read_map(base + "albedo.exr")[m])
@@ -119,8 +120,9 @@ def collect(fit, frames_spec):
         cols["true_rough"].append(rough[m] if rough is not None else np.full(m.sum(), np.nan))
     names = {d["mesh_id"]: d["name"] for d in meshes}
     out = {k: np.concatenate(v) for k, v in cols.items()}
-    if image_err:
-        out["image_err"], out["image_near"] = np.concatenate(image_err), np.concatenate(image_near)
+    if image_pred:
+        out["image_pred"], out["image_obs"] = np.concatenate(image_pred), np.concatenate(image_obs)
+        out["image_near"] = np.concatenate(image_near)
     return out, names
 
 
@@ -151,14 +153,14 @@ def report(fit, data, names):
           "mean %.1f deg, %.2f deg of the mean" % (NEAR_MOVING_PX, near.mean(),
                                                    np.mean(angle[near]) if near.any() else 0.0,
                                                    angle[near].sum() / max(len(angle), 1)))
-    if "image_err" in data:
-        err, zone = data["image_err"], data["image_near"]
-        psnr = lambda e: 10 * np.log10(1.0 / max(np.mean(e), 1e-20)) if len(e) else float("nan")  # noqa: E731
+    if "image_pred" in data:
+        pred, obs, zone = data["image_pred"], data["image_obs"], data["image_near"][:, None]
         # Pooled over every pixel of the frames, at the sensor's own samples
         # per pixel: close to, not the same as, eval's per-frame mean at 32.
         print("PSNR pooled over the frames (sRGB): %.2f dB; on and next to the moving objects "
               "(%.3f of the pixels) %.2f dB, elsewhere %.2f dB"
-              % (psnr(err), zone.mean(), psnr(err[zone]), psnr(err[~zone])))
+              % (M.psnr(pred, obs), zone.mean(), M.psnr(pred, obs, mask=zone),
+                 M.psnr(pred, obs, mask=~zone)))
     print("| material | pixels | true albedo | fitted (scaled) | RMSE | error share | normal [deg] "
           "| normal share | roughness (true, fitted) | true sun vis |")
     print("|---|---|---|---|---|---|---|---|---|---|")
