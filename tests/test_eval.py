@@ -528,7 +528,8 @@ def test_a_changed_integrator_keeps_every_other_setting():
     from mi_invrgbl.eval.rendering import integrator_like
     settings = {"type": "invrgbl", "samples": 12, "bounces": 1, "max_hits": 33,
                 "min_transmittance": 0.02, "sun_visibility": "attribute", "f0": 0.05,
-                "diffuse_fresnel": True, "hide_emitters": True, "shadowing": "smith"}
+                "diffuse_fresnel": True, "hide_emitters": True, "shadowing": "smith",
+                "moving": "object_0 object_3"}
     scene = mi.load_dict({"type": "scene", "integrator": settings})
     assert scene.integrator().settings() == settings
     assert integrator_like(scene) is None

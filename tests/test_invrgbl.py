@@ -255,6 +255,45 @@ def test_sun_visibility_attribute_replaces_traced_shadows():
     assert np.all((edited - no_sun)[shadowed, 1] > 0.5 * sun_term[lit].mean())
 
 
+def test_moving_shapes_cast_their_shadow_over_the_learned_field():
+    # A fitted scene's field holds the static scene's shadows (here: none,
+    # the field is 1); the blob, named as moving, casts its own shadow on
+    # top, where it stands at each render.
+    def scene_dict(moving):
+        d = shadow_scene(True, "attribute")
+        d["integrator"]["moving"] = moving
+        return d
+    no_sun, _ = render(shadow_scene(False, "attribute"), spp=4)
+    traced, _ = render(shadow_scene(True, "trace"), spp=4)
+    static, _ = render(scene_dict(""), spp=4)
+    moving, scene = render(scene_dict("blob"), spp=4)
+    p, _ = ground_hits(scene)
+    core = np.linalg.norm(p[..., :2], axis=-1) < 0.15
+    full = sun_term_closed_form(np.zeros(3))
+    # Without it the field lights the core; with it the core is in the
+    # blob's shadow, as a traced render has it.
+    assert (static - no_sun)[core, 1].mean() > 0.8 * full
+    assert (moving - no_sun)[core, 1].mean() < 0.15 * full
+    np.testing.assert_allclose(moving[core], traced[core], atol=0.02 * full)
+
+    # Moved through mi.traverse, the blob takes its shadow along.
+    params = mi.traverse(scene)
+    data = np.array(params["blob.data"])
+    data[1] += 1.0
+    params["blob.data"] = type(params["blob.data"])(data)
+    params.update()
+    moved = np.array(mi.render(scene, spp=4))
+    core_y1 = np.linalg.norm(p[..., :2] - [0.0, 1.0], axis=-1) < 0.15
+    assert (moved - no_sun)[core, 1].mean() > 0.8 * full
+    assert (moved - no_sun)[core_y1, 1].mean() < 0.15 * full
+
+    # A name that is no Gaussian shape is refused by name (mi.render hands
+    # the integrator's error on as the cause of its own).
+    with pytest.raises(RuntimeError) as refused:
+        render(scene_dict("car"), spp=1)
+    assert "moving names no Gaussian shape of the scene: car" in str(refused.value.__cause__)
+
+
 def test_a_low_sun_does_not_shadow_a_surface_with_its_own_gaussians():
     # Fitted surfaces are Gaussians a few centimetres thick and tenths of a
     # metre wide (the street's: smallest scale 0.02-0.04 m, largest 0.2-0.5 m).

@@ -99,6 +99,10 @@ FLAGS = (
      "(default: stage 1 keeps them inside it, so an object cannot draw its own shadow on the "
      "road; objects the import found by LiDAR motion are never held)",
      {"invert": True}),
+    ("--static-object-shadows", "moving_shadows",
+     "leave the moving objects' sun shadows to the learned, static sun visibility (default: "
+     "stage 2 and the fitted scene trace the sun through the moving objects in every frame, so "
+     "their shadows move with them)", {"invert": True}),
     ("--keep-sky-lookalikes", "prune_sky_lookalikes",
      "keep stage-1 Gaussians that have the sky's colour and only sky behind them (default: "
      "removed before stage 2; they cast shadows no roof casts)", {"invert": True}),

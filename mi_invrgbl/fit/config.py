@@ -17,7 +17,7 @@ MODEL_FIELDS = ("batch_rays", "lidar_batch_rays", "fit_width", "lidar_columns", 
                 "max_gaussians", "stage1_range", "stage1_drop", "stage1_sky", "seed", "fit_response",
                 "sun_candidates", "sun_gaussians", "per_frame_visibility", "learn_sun_direction",
                 "prune_sky_lookalikes", "sky_mask", "sun_visibility", "validation_every",
-                "object_poses", "object_bounds")
+                "object_poses", "object_bounds", "moving_shadows")
 
 
 #: Largest ``pixel_grid`` (rays per pixel side in stage 2's camera hits).
@@ -182,6 +182,11 @@ class FitConfig:
     #: Stage 1 keeps each labelled moving object's Gaussians inside the box
     #: of its imported centres (.object_bounds): it cannot paint its shadow.
     object_bounds: bool = True
+    #: With a learned sun visibility (the static scene's shadows), stage 2
+    #: and the fitted scene's integrator multiply it, per frame, by the
+    #: sun's transmittance through the moving objects where the frame has
+    #: them (``physics.lighting.moving_shadows``): their shadows move.
+    moving_shadows: bool = True
     #: Every n-th training frame (``index % n == min(2, n // 2)``, :func:`.init.
     #: split_validation`) is a validation frame:
     #: not trained on, it scores the model selection. 0: no validation split

@@ -68,6 +68,11 @@ def fitted_xml(ctx, lidar=False):
         if ctx.sun_visibility_learned:
             # The fitted v_sun holds for the fitted sun; relight/night switch to trace.
             xml.set_child_param(integ, "string", "sun_visibility", "attribute")
+            if ctx.moving_shadows:
+                # The field holds the static scene's shadows; the moving
+                # objects' are traced per render where the frame has them.
+                xml.set_child_param(integ, "string", "moving", " ".join(
+                    name for name, node in ctx.model.nodes.items() if node.dynamic))
     doc.set_integrator(integ)
     return doc.to_string()
 

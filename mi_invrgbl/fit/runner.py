@@ -530,6 +530,7 @@ def start_stage2(state: FitState, frozen, initialise=True):
     t = time.perf_counter()
     stage2 = Stage2(state, frozen)
     state.sun_visibility_learned = stage2.learn_sun_visibility
+    state.moving_shadows = stage2.moving_shadows
     if initialise:
         si = state.selection["shading_init"] = stage2.init_shading()
         # (What a start takes: the sun trial's estimate of its own start.)

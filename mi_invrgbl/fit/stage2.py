@@ -42,8 +42,9 @@ import mitsuba as mi
 from ..physics import coat
 from ..physics import hits as hitlib
 from ..physics.colour import LUMINANCE
-from ..physics.lighting import (GaussianLighting, GaussianTable, LightingCache, light_at, shadow_origins,
-                                point_lights, retrace_turned, transmittance)
+from ..physics.lighting import (GaussianLighting, GaussianTable, LightingCache, light_at,
+                                moving_shadows, point_lights, retrace_turned, shadow_origins,
+                                split_transmittance, transmittance)
 from . import losses, shading_init
 from ..physics.fields import BY_NAME, MATERIAL
 from .render import (Response, VirtualNode, camera_shaded, freeze, freeze_pixels,
@@ -78,6 +79,10 @@ BOUNCE_ROUNDS = 3
 START_ROUGHNESS = (0.75, 1.0)
 
 #: Learning rates of the scene-wide variables (the Gaussians' are in the field table).
+#: Degrees the sun may turn (``--learn-sun-direction``) before the moving
+#: objects' shadows of a frame are traced again (:meth:`FrozenScene.moving_shadow`).
+MOVING_SHADOW_TURN_DEG = 0.5
+
 STAGE2_LR = {"sky": 1e-2, "sun": 2e-2, "sun_direction": 2e-3,
              "range_exponent": 2e-3, "angle_exponent": 2e-3,
              "beam_gains": 1e-2}
@@ -104,6 +109,10 @@ class FrozenScene:
         #: else the first frame.
         train = [t for t in ctx.train_frames if any(t is f for f in frames)]
         self.first = train[0] if train else (frames[0] if frames else None)
+        #: Shape ids of the moving nodes (their shadows: :meth:`moving_shadow`).
+        self.moving_ids = {model.shape_ids[n] for n, node in model.nodes.items() if node.dynamic}
+        #: frame index -> (sun direction, the moving nodes' shadow factor).
+        self._moving = {}
         shared = LightingCache()
         with dr.suspend_grad():
             for frame in frames:
@@ -153,6 +162,30 @@ class FrozenScene:
         if target is not None and self.ctx.model.placed is not target.poses:
             self.ctx.model.push(target.poses, stage=2)
 
+    def moving_shadow(self, frame, direction):
+        """(G,) factor on the learned sun visibility in ``frame``: the sun's
+        transmittance towards ``direction`` through the moving nodes where
+        ``frame`` has them (:func:`~mi_invrgbl.physics.lighting.moving_shadows`),
+        in the global index order of :meth:`nodes`. Traced once per frame
+        and kept while the sun turns by less than
+        :data:`MOVING_SHADOW_TURN_DEG`; the moving nodes' own Gaussians get 1."""
+        d = np.asarray(direction, np.float64).ravel()
+        d = d / np.linalg.norm(d)
+        kept = self._moving.get(frame.index)
+        if kept is not None and float(kept[0] @ d) >= np.cos(np.radians(MOVING_SHADOW_TURN_DEG)):
+            return kept[1]
+        model, scene = self.ctx.model, self.ctx.scene
+        with dr.suspend_grad():
+            if model.placed is not frame.poses:
+                model.push(frame.poses, stage=2)
+            by_id = {n.shape.id(): n for n in hitlib.gaussian_nodes(scene)}
+            ordered = [by_id[name] for name in model.nodes]
+            table = GaussianTable.build(ordered).load_geometry()
+            factor = moving_shadows(scene, ordered, table, d, self.moving_ids)
+            dr.eval(factor)
+        self._moving[frame.index] = (d, factor)
+        return factor
+
     def nodes(self, frame, values):
         """Virtual nodes of ``frame``: frozen geometry + the material variables."""
         out = []
@@ -182,6 +215,12 @@ class Stage2:
         # Learned v_sun only where there is a sun whose shading is fitted.
         self.learn_sun_visibility = bool(cfg.sun_visibility == "learn" and ctx.use_sun
                                          and ctx.sun_key is not None and cfg.weights.rgb > 0)
+        # The learned field then holds the static scene's shadows, and each
+        # frame's moving objects cast theirs on top (traced per frame: G
+        # rays at most, not the G x M of --per-frame-visibility, which
+        # traces them into every cache already).
+        self.moving_shadows = bool(self.learn_sun_visibility and cfg.moving_shadows
+                                   and frozen.moving_ids and not frozen.per_frame)
         # What L_anchor pulls the normals back to: their unit normals now, at
         # stage 2's start (a fit resumed in stage 2 anchors to the normals it
         # resumed with).
@@ -412,8 +451,14 @@ class Stage2:
                 # From above the surface, as the sun selection and the
                 # integrator trace (lighting.SHADOW_OFFSET).
                 origin = shadow_origins(table, d)
-                vis = np.clip(np.array(transmittance(ctx.scene, origin, d,
-                                                     mi.Float(dr.inf), ordered)), 0.0, 1.0)
+                if self.moving_shadows:
+                    # The field's start is the static scene's shadow: the
+                    # moving objects cast theirs per frame on top.
+                    vis, _ = split_transmittance(ctx.scene, origin, d, mi.Float(dr.inf), ordered,
+                                                 self.frozen.moving_ids)
+                else:
+                    vis = transmittance(ctx.scene, origin, d, mi.Float(dr.inf), ordered)
+                vis = np.clip(np.array(vis), 0.0, 1.0)
                 for name, v in zip(names, shading_init.split_by_node(vis, table, counts)):
                     model.nodes[name].values["sun_visibility"] = jit_array(mi.Float, v)
                 sun_dir = np.array(d, np.float64).T
@@ -631,11 +676,15 @@ class Stage2:
         ``frame`` (:meth:`FrozenScene.place`)."""
         cfg = self.ctx.config
         place = None if frame is None else (lambda: self.frozen.place(frame))
+        extra = None
+        if self.moving_shadows and frame is not None:
+            extra = [self.frozen.moving_shadow(frame, dr.detach(e.sun_direction_world()))
+                     if kind == "sun" else None for kind, e in point_lights(self.ctx.scene)]
         return GaussianLighting(self.ctx.scene, nodes, samples or cfg.samples, cache,
                                 trace_sun=not self.learn_sun_visibility, bounces=cfg.bounces,
                                 pattern=pattern, before_trace=place,
                                 diffuse_fresnel=bool(cfg.diffuse_fresnel),
-                                f0=self.ctx.camera_integrator.f0)
+                                f0=self.ctx.camera_integrator.f0, light_transmittance=extra)
 
     def refresh_lighting(self, vals=None):
         """Re-trace the sky visibility of the Gaussians whose normal turned

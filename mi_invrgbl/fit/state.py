@@ -72,6 +72,10 @@ class FitState:
     sh_order: int | None = None
     sh_mask: mi.Float | None = None
     sun_visibility_learned: bool = False
+    #: Stage 2 multiplies the learned sun visibility by the moving objects'
+    #: shadows per frame (``Stage2.moving_shadows``); the fitted scene's
+    #: integrator then does too.
+    moving_shadows: bool = False
     #: Stage 1's per-frame corrections of the moving objects' poses (None: off or nothing moves).
     object_poses: object = None
     #: The moving objects' boxes stage 1 keeps their Gaussians in

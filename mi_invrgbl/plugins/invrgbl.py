@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import numpy as np
 import drjit as dr
 import mitsuba as mi
 
 from ..physics import brdf, coat, hits as hitlib
-from ..physics.lighting import (MAX_BOUNCES, GaussianLighting, LightingCache,
-                                fibonacci_direction, hash_rotation_of, transmittance)
+from ..physics.lighting import (MAX_BOUNCES, GaussianLighting, GaussianTable, LightingCache,
+                                fibonacci_direction, geometry_key, hash_rotation_of, moving_shadows,
+                                point_lights, transmittance)
 
 _variant = mi.variant()
 
@@ -45,6 +47,15 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
        - ``trace``: trace each Gaussian's shadow ray to the sun (shadows follow
          a moved sun); ``attribute``: use the per-Gaussian ``sun_visibility``
          field (the fitted value). (Default: ``trace``)
+     * - moving
+       - |string|
+       - Ids of the shapes that move between frames (space-separated), used
+         with ``sun_visibility = attribute``: the learned field holds the
+         shadows of the static scene, and each render multiplies it by the
+         sun's transmittance through these shapes where they stand now, so
+         their shadows move with them
+         (:func:`~mi_invrgbl.physics.lighting.moving_shadows`). Ignored
+         with ``trace``, which traces through every shape. (Default: none)
      * - f0
        - |float|
        - Fresnel reflectance at normal incidence of the Gaussians. (Default: 0.04)
@@ -132,7 +143,34 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
             raise ValueError("invrgbl: bounces must be in 0..%d (got %d)" % (MAX_BOUNCES, self.bounces))
         if self.sun_visibility not in ("trace", "attribute"):
             raise ValueError("invrgbl: sun_visibility must be 'trace' or 'attribute'")
+        self.moving = str(props.get("moving", "")).replace(",", " ").split()
         self.cache = LightingCache()
+        #: (geometry, sun directions) -> the moving shapes' shadows per light.
+        self._moving_cache = (None, None)
+
+    def moving_transmittance(self, scene, nodes):
+        """Per light, the moving shapes' shadow factor on the learned sun
+        visibility (``None`` where there is none): traced when the geometry
+        or a sun has moved since the last render."""
+        if self.sun_visibility != "attribute" or not self.moving:
+            return None
+        by_name = {s.id(): s for s in scene.shapes()}
+        missing = [m for m in self.moving if m not in by_name or not by_name[m].is_ellipsoids()]
+        if missing:
+            raise ValueError("invrgbl: moving names no Gaussian shape of the scene: %s"
+                             % ", ".join(missing))
+        ids = {hitlib.shape_id(by_name[m]) for m in self.moving}
+        lights = point_lights(scene)
+        suns = [tuple(np.array(dr.detach(e.sun_direction_world())).ravel().round(7))
+                if kind == "sun" else None for kind, e in lights]
+        key = (geometry_key(nodes), tuple(suns))
+        if self._moving_cache[0] != key:
+            with dr.suspend_grad():
+                table = GaussianTable.build(nodes).load_geometry()
+                out = [None if d is None else moving_shadows(scene, nodes, table, d, ids)
+                       for d in suns]
+            self._moving_cache = (key, out)
+        return self._moving_cache[1]
 
     def settings(self):
         """Every parameter of this integrator as a ``mi.load_dict``
@@ -143,7 +181,7 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
                 "max_hits": self.max_hits, "min_transmittance": self.min_transmittance,
                 "sun_visibility": self.sun_visibility, "f0": self.f0,
                 "diffuse_fresnel": self.diffuse_fresnel, "hide_emitters": self.hide_emitters,
-                "shadowing": self.shadowing}
+                "shadowing": self.shadowing, "moving": " ".join(self.moving)}
 
     def aov_names(self):
         return list(AOV_NAMES)
@@ -258,7 +296,8 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
             lighting = GaussianLighting(scene, nodes, self.samples, self.cache, follow_normals=True,
                                         trace_sun=self.sun_visibility == "trace",
                                         bounces=self.bounces, diffuse_fresnel=self.diffuse_fresnel,
-                                        f0=self.f0)
+                                        f0=self.f0,
+                                        light_transmittance=self.moving_transmittance(scene, nodes))
             colour, albedo, n, tau, rho_l = self.shade_gaussian_hits(lighting, nodes, rays, hit_list, g)
         else:
             colour, albedo, n, tau, rho_l = mi.Color3f(0), mi.Color3f(0), mi.Vector3f(0), 0.0, 0.0

@@ -254,7 +254,7 @@ def fill_lighting_cache(scene, integrator):
     G = sum(node.count for node in nodes)
     trace_sun = integrator.sun_visibility == "trace"
     with dr.suspend_grad():
-        key = (L._geometry_key(nodes), L._light_key(scene, lights), integrator.samples, trace_sun)
+        key = (L.geometry_key(nodes), L._light_key(scene, lights), integrator.samples, trace_sun)
     cache = integrator.cache
     cache.sky_visibility = dr.ones(mi.Float, G * integrator.samples)
     cache.light_visibility = [dr.ones(mi.Float, G) for _ in lights]
