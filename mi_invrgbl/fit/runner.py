@@ -375,6 +375,9 @@ def follow_normals(state: FitState, stage2):
     stage2.refresh_lighting()
     state.selection["lighting_retraced"] = dict(stage2.retraced, seconds=round(
         stage2.retraced["seconds"], 2), turn_deg=RETRACE_TURN_DEG)
+    if stage2.moving_shadows:
+        traced = stage2.frozen.moving_traced
+        state.selection["moving_shadows"] = dict(traced, seconds=round(traced["seconds"], 2))
 
 
 def replanner(state: FitState, plan, first, deadline, most=None):

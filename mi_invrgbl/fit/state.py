@@ -41,6 +41,7 @@ class Stage2Start:
     lr_state: dict
     shading_init: object
     sun_visibility_learned: bool
+    moving_shadows: bool
 
 
 @dataclass
@@ -116,7 +117,7 @@ class FitState:
         """The point to come back to with :meth:`restore_stage2_start`."""
         return Stage2Start({name: dict(node.values) for name, node in self.model.nodes.items()},
                            dict(self.lr_state), self.selection.get("shading_init"),
-                           self.sun_visibility_learned)
+                           self.sun_visibility_learned, self.moving_shadows)
 
     def restore_stage2_start(self, point: Stage2Start) -> None:
         for name, values in point.values.items():
@@ -125,6 +126,7 @@ class FitState:
         self.lr_state.update(point.lr_state)
         self.selection["shading_init"] = point.shading_init
         self.sun_visibility_learned = point.sun_visibility_learned
+        self.moving_shadows = point.moving_shadows
 
     @property
     def selection_frames(self) -> list:

@@ -259,23 +259,30 @@ def _moving_boxes(table, moving_ids):
     return boxes
 
 
-def moving_shadows(scene, nodes, table, direction, moving_ids):
+def moving_shadows(nodes, table, direction, moving_ids, return_rays=False):
     """Per Gaussian of the loaded ``table`` (G,): the transmittance of its
     shadow ray towards ``direction`` (a unit world vector, towards the light)
-    through the Gaussians of the moving nodes, as the scene is placed now.
+    through the Gaussians of the moving nodes, as they are placed now.
     The moving nodes' own Gaussians get 1 (their shading is the learned
     field's), as does every ray that cannot meet a moving node's bounds:
     only rays whose slab test meets a node's box are traced.
 
+    The rays are traced through a scene of the moving nodes' shapes alone
+    (``nodes`` must be the scene's own, :func:`~.hits.gaussian_nodes`), so
+    a ray walks past no static Gaussian on its way (KITTI excerpt, 54 000
+    rays: 0.15-0.23 s with the scene built, against 0.92-0.98 s through the
+    whole scene), and no static hit ends it before it reaches the objects.
+
     This is the factor that lets a learned, static ``sun_visibility`` field
     carry the shadows of objects that move: the field holds what the static
-    scene casts, this what the objects cast where the frame has them."""
+    scene casts, this what the objects cast where the frame has them.
+    With ``return_rays``, also how many shadow rays were traced."""
     G = table.total
     ids = set(int(i) for i in moving_ids)
     out = np.ones(G, np.float32)
     boxes = _moving_boxes(table, ids)
     if G == 0 or not boxes:
-        return jit_array(mi.Float, out)
+        return (jit_array(mi.Float, out), 0) if return_rays else jit_array(mi.Float, out)
     d = np.asarray(direction, np.float64).ravel()
     d = d / np.linalg.norm(d)
     node_id = np.array(table.ids, np.uint32)
@@ -297,10 +304,14 @@ def moving_shadows(scene, nodes, table, direction, moving_ids):
     if rows.size:
         o = mi.Point3f(*origin[rows].T.astype(np.float32))
         dv = mi.Vector3f(*np.tile(d.astype(np.float32), (rows.size, 1)).T)
+        shapes = [n.shape for n in nodes if n.id in ids]
+        # Keyed by their own ids: a scene's dictionary names its objects.
+        movers = mi.load_dict(dict({"type": "scene"}, **{
+            (s.id() or "moving_%d" % i): s for i, s in enumerate(shapes)}))
         with dr.suspend_grad():
-            _, moving = split_transmittance(scene, o, dv, mi.Float(dr.inf), nodes, ids)
+            moving = transmittance(movers, o, dv, mi.Float(dr.inf), hitlib.gaussian_nodes(movers))
         out[rows] = np.clip(np.array(moving, np.float32), 0.0, 1.0)
-    return jit_array(mi.Float, out)
+    return (jit_array(mi.Float, out), int(rows.size)) if return_rays else jit_array(mi.Float, out)
 
 
 def shadow_blockers(scene, origins, directions, maxt, nodes, table):

@@ -167,7 +167,7 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
         if self._moving_cache[0] != key:
             with dr.suspend_grad():
                 table = GaussianTable.build(nodes).load_geometry()
-                out = [None if d is None else moving_shadows(scene, nodes, table, d, ids)
+                out = [None if d is None else moving_shadows(nodes, table, d, ids)
                        for d in suns]
             self._moving_cache = (key, out)
         return self._moving_cache[1]
