@@ -78,11 +78,11 @@ BOUNCE_ROUNDS = 3
 #: 17.22 dB at 0.5 / 0.75 / 1, the street's 27.59 / 27.76 / 27.83.
 START_ROUGHNESS = (0.75, 1.0)
 
-#: Learning rates of the scene-wide variables (the Gaussians' are in the field table).
 #: Degrees the sun may turn (``--learn-sun-direction``) before the moving
 #: objects' shadows of a frame are traced again (:meth:`FrozenScene.moving_shadow`).
 MOVING_SHADOW_TURN_DEG = 0.5
 
+#: Learning rates of the scene-wide variables (the Gaussians' are in the field table).
 STAGE2_LR = {"sky": 1e-2, "sun": 2e-2, "sun_direction": 2e-3,
              "range_exponent": 2e-3, "angle_exponent": 2e-3,
              "beam_gains": 1e-2}

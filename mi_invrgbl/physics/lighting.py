@@ -286,10 +286,8 @@ def moving_shadows(nodes, table, direction, moving_ids, return_rays=False):
     d = np.asarray(direction, np.float64).ravel()
     d = d / np.linalg.norm(d)
     node_id = np.array(table.ids, np.uint32)
-    centre = np.array(dr.detach(table.center), np.float64).T
-    normal = np.array(dr.detach(table.normal), np.float64).T
-    side = np.where(normal @ d < 0, -1.0, 1.0)
-    origin = centre + normal * (SHADOW_OFFSET * side)[:, None]
+    origin = np.array(shadow_origins(table, dr.zeros(mi.Vector3f, G) + mi.Vector3f(
+        *[float(x) for x in d])), np.float64).T
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = np.where(np.abs(d) > 1e-12, 1.0 / d, np.inf)
     candidate = np.zeros(G, bool)
