@@ -757,7 +757,7 @@ class Stage2:
                 # Every training frame's moving shadows too: traced on first
                 # use, they made the first stage-2 steps, which a budget times,
                 # look slow (KITTI, 30 minutes: 1.25 s per step planned where
-                # the steps took 0.7 s, and stage 2 ran 356 steps in 236 s of
+                # the steps took 0.66 s, and stage 2 ran 356 steps in 236 s of
                 # its 442 s share).
                 d = [dr.detach(e.sun_direction_world()) for kind, e in point_lights(ctx.scene)
                      if kind == "sun"]
