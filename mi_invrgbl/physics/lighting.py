@@ -355,6 +355,11 @@ class LightingCache:
     #: M directions turn with its normal; visibility traced for the old ones
     #: is not the new ones' (:func:`retrace_turned`).
     normals: np.ndarray = None
+    #: What ``moving_visibility`` was traced for: geometry and sun directions.
+    moving_key: tuple = ()
+    #: Per light, the moving shapes' shadow factor on a learned sun
+    #: visibility (:func:`moving_shadows`; None for other lights).
+    moving_visibility: list = field(default_factory=list)
 
 
 def geometry_key(nodes):

@@ -145,8 +145,6 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
             raise ValueError("invrgbl: sun_visibility must be 'trace' or 'attribute'")
         self.moving = str(props.get("moving", "")).replace(",", " ").split()
         self.cache = LightingCache()
-        #: (geometry, sun directions) -> the moving shapes' shadows per light.
-        self._moving_cache = (None, None)
 
     def moving_transmittance(self, scene, nodes):
         """Per light, the moving shapes' shadow factor on the learned sun
@@ -164,13 +162,14 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
         suns = [tuple(np.array(dr.detach(e.sun_direction_world())).ravel().round(7))
                 if kind == "sun" else None for kind, e in lights]
         key = (geometry_key(nodes), tuple(suns))
-        if self._moving_cache[0] != key:
+        cache = self.cache
+        if cache.moving_key != key:
             with dr.suspend_grad():
                 table = GaussianTable.build(nodes).load_geometry()
-                out = [None if d is None else moving_shadows(nodes, table, d, ids)
-                       for d in suns]
-            self._moving_cache = (key, out)
-        return self._moving_cache[1]
+                cache.moving_visibility = [None if d is None else moving_shadows(nodes, table, d, ids)
+                                           for d in suns]
+            cache.moving_key = key
+        return cache.moving_visibility
 
     def settings(self):
         """Every parameter of this integrator as a ``mi.load_dict``
