@@ -176,3 +176,40 @@ def test_the_fitted_scene_names_its_moving_shapes_for_the_integrator(block_scene
         settings = mi.load_file(path).integrator().settings()
         assert settings["sun_visibility"] == "attribute"
         assert settings["moving"] == ("object_1" if on else "")
+
+
+@pytest.mark.parametrize("d", [(0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, -1.0, 0.0)],
+                         ids=["overhead", "along x", "along -y"])
+def test_a_sun_along_an_axis_casts_the_product_over_the_moving_gaussians(block_scene, tmp_path, d):
+    # A direction along an axis makes the slab test divide by zero on the
+    # other two axes: rays level with a face must neither all pass nor all
+    # miss the box.
+    from mi_invrgbl.physics.lighting import moving_shadows
+    state = _state(block_scene, tmp_path)
+    frame = state.train_frames[0]
+    state.model.push(frame.poses, stage=2)
+    nodes, table = _scene_table(state)
+    moving = FrozenScene(state, state.train_frames).moving_ids
+    factor, rays = moving_shadows(nodes, table, d, moving, return_rays=True)
+    factor = np.array(factor)
+    assert np.all(np.isfinite(factor))
+    own = np.isin(np.array(table.ids), list(moving))
+    reference, inside = _block_transmittance(table, nodes, moving, d)
+    check = ~own & ~inside
+    np.testing.assert_allclose(np.maximum(factor[check], 0.05),
+                               np.maximum(reference[check], 0.05), atol=2e-3)
+    # Only the rays that can meet the block were traced (a darkened ray left
+    # out would read 1 above).
+    assert 0 < rays < table.total
+    if d[2] > 0:
+        assert np.sum(factor < 0.5) >= 5     # the ground under the block
+
+
+def test_no_moving_node_or_an_unknown_id_traces_nothing(block_scene, tmp_path):
+    from mi_invrgbl.physics.lighting import moving_shadows
+    state = _state(block_scene, tmp_path)
+    nodes, table = _scene_table(state)
+    for ids in ([], [int(np.max(np.array(table.ids))) + 1000]):
+        factor, rays = moving_shadows(nodes, table, _sun(state), ids, return_rays=True)
+        assert rays == 0
+        np.testing.assert_array_equal(np.array(factor), np.ones(table.total, np.float32))

@@ -33,7 +33,7 @@ class FitConfig:
     #: Stage 1's LiDAR beams per step. The Gaussians start on the LiDAR
     #: points, so the beams only keep the geometry from drifting; each costs
     #: about what a camera ray does, and the camera rays are what a fit on a
-    #: CPU is short of (see the README's KITTI notes).
+    #: CPU is short of (see docs/measurements.md on KITTI).
     lidar_batch_rays: int = 1024
     fit_width: int = 320
     lidar_columns: int = 512
@@ -67,7 +67,7 @@ class FitConfig:
     #: less than a smooth one: at alpha 0.8-0.9 (the street's road, sidewalk
     #: and wall) the coated lobe is 0.41-0.44 of a Lambertian one lit and seen
     #: head-on and 0.21-0.25 seen 80 degrees from the normal, where a car's
-    #: camera sees the ground (README, "Where the albedo error sits").
+    #: camera sees the ground (docs/measurements.md, "Where the albedo error sits").
     diffuse_fresnel: bool = False
     #: Colour space the camera loss compares in (``losses.RGB_SPACES``).
     #: sRGB weighs an error as the 8-bit image and PSNR do, so dark pixels
@@ -81,7 +81,8 @@ class FitConfig:
     #: KITTI fit, ``eval``: 22.22 dB, SSIM 0.791 with l1 against 21.79-21.99
     #: and 0.742-0.754 with l2; the street's 8-minute main job 29.27 dB,
     #: relighting 23.66 against 28.45 and 23.37, its normals 16.0 degrees
-    #: against 13.5 (README, "The camera loss as an absolute difference").
+    #: against 13.5 (docs/measurements.md, "The camera loss as an
+    #: absolute difference").
     rgb_norm: str = "l1"
     #: Stage 2 turns each Gaussian's M sky directions to another of this many
     #: patterns every step (each pattern's visibility is traced once), so the
@@ -170,8 +171,8 @@ class FitConfig:
     #: them. Off by default: once, placed as in the first training frame.
     #: On the KITTI excerpt one trace of its 137 000 Gaussians took 54-61 s
     #: on 2 cores, 40 frames about 40 minutes, while the one placement cost
-    #: ``eval`` 0.11-0.17 dB on held-out frames (README, "Where the moving
-    #: objects are lit").
+    #: ``eval`` 0.11-0.17 dB on held-out frames (docs/measurements.md, "Where
+    #: the moving objects are lit").
     per_frame_visibility: bool = False
     learn_sun_direction: bool = False  # stage 2 refines the selected sun direction (opt-in)
     prune_sky_lookalikes: bool = True  # drop sky-coloured Gaussians with only sky behind them

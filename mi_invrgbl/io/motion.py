@@ -142,14 +142,14 @@ class MotionOptions:
     #: 0.3 made fragments of a car beside the KITTI excerpt's ego vehicle
     #: (0.39 m over 24 sweeps by their registration) a node; the one
     #: 30-minute fit of that import scored 21.33 dB held-out against 21.70
-    #: (README, "Settling the stages"). Tracked whole, that car stands.
+    #: (docs/measurements.md, "Settling the stages"). Tracked whole, that car stands.
     min_travel: float = 0.5
     track_id_base: int = 1000
     #: follow each node past its track by registration (:func:`follow_node`;
     #: ``import --follow-nodes``). Off by default: on the KITTI excerpt
     #: neither stage 1 at 800 steps (21.13 and 20.95 dB on the validation
     #: frames against 20.94 and 21.01) nor a 30-minute fit (21.70 against
-    #: 21.81 dB by ``eval``, one run each) scored better with it (README
+    #: 21.81 dB by ``eval``, one run each) scored better with it (docs/measurements.md,
     #: "Nodes followed past their tracks").
     follow: bool = False
 

@@ -49,7 +49,7 @@ SHADOW_MAX_HITS = 16
 #: bumpy Gaussian ground under a 15-degree sun kept three quarters of its sun
 #: (tests/test_invrgbl.py), and relit under a 25-degree sun a fitted street's
 #: sunlit facade came out at 0.64 of the truth's luminance, 0.86 from here
-#: (README, "Where the relighting error sits"). The fit's sun search and
+#: (docs/measurements.md, "Where the relighting error sits"). The fit's sun search and
 #: stage 2's start trace from here too.
 SHADOW_OFFSET = 0.1
 #: Most diffuse bounces an integrator or a fit may ask for.

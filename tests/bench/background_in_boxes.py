@@ -20,8 +20,8 @@ with and without them (``tests/bench/stage1_steps.py NEW_DIR/scene.xml``).
 On the KITTI excerpt's import (the README's recipe) 3 396 of its 60 000
 background Gaussians lie in the boxes (3 280 with ``--margin 0.3
 --clearance 0.2``); taking those 3 280 out did not help stage 1 (see the
-README's "Densification, annealing and the background in the moving
-objects' boxes").
+"Densification, annealing and the background in the moving
+objects' boxes" in docs/measurements.md).
 """
 
 from __future__ import annotations

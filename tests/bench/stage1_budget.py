@@ -17,7 +17,7 @@ changes (default: ``base:``, the defaults alone), for example::
         --try base: b8192:batch_rays=8192,lidar_batch_rays=2048 \\
               b2048:batch_rays=2048,lidar_batch_rays=512 dens08:densify_fraction=0.08 lr2:lr_scale=2
 
-The README's "Stage 1 per second" table comes from this script. Run it on
+The "Stage 1 per second" table in docs/measurements.md comes from this script. Run it on
 an otherwise idle machine: a budgeted stage plans from measured speed.
 """
 

@@ -25,7 +25,7 @@ position_lr_factor`), so that long runs settle as ``fit --budget`` would.
 ``--validation`` scores only these validation frames and ``--train-also``
 trains on these validation frames too: with the same ``--validation`` in
 both, two runs compare training on more frames on frames neither trained on. The
-README's "KITTI: far below replaying the recording" numbers come from this
+"KITTI: far below replaying the recording" numbers in docs/measurements.md come from this
 script. Held-out frames are never read.
 """
 
