@@ -33,7 +33,8 @@ class FitConfig:
     #: Stage 1's LiDAR beams per step. The Gaussians start on the LiDAR
     #: points, so the beams only keep the geometry from drifting; each costs
     #: about what a camera ray does, and the camera rays are what a fit on a
-    #: CPU is short of (see docs/measurements.md on KITTI).
+    #: CPU is short of (docs/measurements.md, "Half the LiDAR beams per
+    #: stage-1 step").
     lidar_batch_rays: int = 1024
     fit_width: int = 320
     lidar_columns: int = 512

@@ -12,9 +12,8 @@ end, both stages' steps, stage 2's planned steps, score spacing, plateaus
 and seconds, whether the lighting test kept a sun, and the wall time. A
 budgeted fit's stage 1 depends on its timing, so the two fits of a seed may
 choose different lighting; the row says so. OUT must be new or empty.
-The "Stage 2 stops where its validation PSNR levels off" numbers in
-docs/measurements.md
-on the small street come from this script.
+The numbers on the small street in "Stage 2 stops where its validation
+PSNR levels off" (docs/measurements.md) come from this script.
 """
 
 import sys as _sys, pathlib as _pathlib
