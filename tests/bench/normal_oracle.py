@@ -1,7 +1,7 @@
 """Where a fitted street's normal error comes from: the Gaussians' normals,
 or Gaussians away from every true surface (synthetic street).
 
-    python tests/bench/normal_oracle.py FIT_DIR [--spp 32] [--off 0.2] [--png OUT.png]
+    python tests/bench/normal_oracle.py FIT_DIR [--spp 32] [--off 0.2] [--png OUT.png] [--write]
 
 The fitted scene is rendered on ``eval``'s held-out frames, as ``eval``
 renders them (its samples per pixel and alpha mask), four times:
@@ -25,7 +25,12 @@ are left as fitted. A row far below ``fit`` names what holds the normals
 back: ``true normals`` the normals learned on the right surfaces,
 ``on-surface only`` the Gaussians the truth does not have. With ``--png``
 the first two scored frames are drawn: the image, the truth's normals, then
-each variant's normal map and its error (0-60 degrees, blue to red).
+each variant's normal map and its error (0-60 degrees, blue to red). With
+``--write`` each changed variant is also written as a fitted scene next to
+the fit (``FIT_DIR_true_normals``, ``FIT_DIR_on_surface_only``,
+``FIT_DIR_both``: its scene files with the edited ``background.ply``) for
+``mi-invrgbl eval`` to score in full (relighting, albedo, PSNR); an
+existing folder of that name is left alone and the run stops.
 """
 
 import sys as _sys, pathlib as _pathlib
@@ -173,6 +178,39 @@ def draw(pictures_by_variant, path):
     cv2.imwrite(path, out, [cv2.IMWRITE_PNG_COMPRESSION, 9])
 
 
+#: Files of a fit folder a written variant keeps (with its own background.ply).
+SCENE_FILES = ("scene.xml", "scene_lidar.xml", "frames.json")
+
+
+def write_variant(fit, name, normals, opacities):
+    """The fit's scene with the background's normals and opacities replaced,
+    as a sibling folder (same depth, so frames.json's relative paths hold);
+    written under a temporary name and renamed into place."""
+    import glob
+    import shutil
+    import tempfile
+    from mi_invrgbl.physics.gaussian_ply import read_ply, write_ply
+    fit = os.path.normpath(fit)
+    target = "%s_%s" % (fit, name.replace(" ", "_").replace("-", "_"))
+    if os.path.exists(target):
+        raise SystemExit("%s: exists; not overwritten" % target)
+    tmp = tempfile.mkdtemp(prefix=os.path.basename(target) + ".", dir=os.path.dirname(fit) or ".")
+    try:
+        for f in list(SCENE_FILES) + [os.path.basename(p) for p in glob.glob(os.path.join(fit, "*.ply"))]:
+            if os.path.isfile(os.path.join(fit, f)) and f != "background.ply":
+                shutil.copy2(os.path.join(fit, f), os.path.join(tmp, f))
+        cloud = read_ply(os.path.join(fit, "background.ply"))
+        cloud.normals = np.asarray(normals, np.float32)
+        # A logit-stored opacity of exactly 0 would be -inf in the file.
+        cloud.opacities = np.maximum(np.asarray(opacities, np.float32), 1e-6)
+        write_ply(os.path.join(tmp, "background.ply"), cloud)
+        os.rename(tmp, target)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return target
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("fit", help="fitted scene folder (fit/)")
@@ -181,6 +219,8 @@ def main():
                     help="metres from the closest true surface beyond which a Gaussian is off it")
     ap.add_argument("--frames", default="held-out", help="frame selection as in eval (default held-out)")
     ap.add_argument("--png", help="draw the first two frames' normal maps and errors here")
+    ap.add_argument("--write", action="store_true",
+                    help="also write each changed variant as a fitted scene next to the fit (for eval)")
     args = ap.parse_args()
 
     frames, gt, positions, scene = open_fit(args.fit, args.frames)
@@ -228,6 +268,10 @@ def main():
                  for s in (e, c, ~e & ~c, ~same, ~same & e)]
         parts[3] += " (%.3f)" % np.mean(~same)
         print("| %s | %.2f | %s |" % (name, a.mean(), " | ".join(parts)), flush=True)
+    if args.write:
+        for name, (normal, opacity) in variants.items():
+            if name != "fit":
+                print("wrote %s" % write_variant(args.fit, name, normal, opacity))
     if args.png:
         draw({k: pictures[k] for k in ("fit", "both")}, args.png)
         print("wrote %s (fit, then both)" % args.png)
