@@ -17,8 +17,9 @@ renders them (its samples per pixel and alpha mask), four times:
 First line: the truth's own meshes traced with ``eval``'s samples per
 pixel (jittered over each pixel, averaged as the box filter does) against
 the truth's maps (one ray through each pixel's centre): what a fit whose
-geometry were the truth's would score, the metric's floor. Each row splits the mean normal error as ``albedo_breakdown.py`` does: pixels
-at the truth's edges, tree crowns off them, and the rest. Before the table,
+geometry were the truth's would score, the metric's floor. Each row splits
+the mean normal error as ``albedo_breakdown.py`` does: pixels at the
+truth's edges, tree crowns off them, and the rest. Before the table,
 the Gaussians themselves: how many stand off the truth's surfaces, and the
 angle of their normals to the closest surface's. The moving car's Gaussians
 are left as fitted. A row far below ``fit`` names what holds the normals
@@ -52,6 +53,7 @@ from mi_invrgbl.eval.ground_truth import ALPHA_MIN, gt_alignment, source_number 
 from mi_invrgbl.eval.inputs import read_map  # noqa: E402
 from mi_invrgbl.eval.rendering import integrator_like, render_camera  # noqa: E402
 from mi_invrgbl.eval.scoring import EVAL_SPP  # noqa: E402
+from mi_invrgbl.physics.gaussian_ply import read_ply, write_ply  # noqa: E402
 from mi_invrgbl.scene.posing import set_frame  # noqa: E402
 from street_truth import open_fit  # noqa: E402
 from albedo_breakdown import first_channel, truth_edges  # noqa: E402
@@ -90,7 +92,6 @@ def truth_floor(gt, numbers, spp, seed=0):
     """Mean normal error [deg] of the truth's meshes averaged over ``spp``
     jittered rays per pixel against its centre-ray maps, and its share at
     the truth's edges."""
-    import drjit as dr  # noqa: F401
     from mi_invrgbl.physics.host_arrays import jit_array
     from mi_invrgbl.synthetic import groundtruth, rgb_frames, trajectory
     info = json.loads((gt / "trajectory.json").read_text())
@@ -182,6 +183,11 @@ def draw(pictures_by_variant, path):
 SCENE_FILES = ("scene.xml", "scene_lidar.xml", "frames.json")
 
 
+def variant_folder(fit, name):
+    """Where ``--write`` puts variant ``name`` of ``fit``."""
+    return "%s_%s" % (os.path.normpath(fit), name.replace(" ", "_").replace("-", "_"))
+
+
 def write_variant(fit, name, normals, opacities):
     """The fit's scene with the background's normals and opacities replaced,
     as a sibling folder (same depth, so frames.json's relative paths hold);
@@ -189,9 +195,7 @@ def write_variant(fit, name, normals, opacities):
     import glob
     import shutil
     import tempfile
-    from mi_invrgbl.physics.gaussian_ply import read_ply, write_ply
-    fit = os.path.normpath(fit)
-    target = "%s_%s" % (fit, name.replace(" ", "_").replace("-", "_"))
+    target = variant_folder(fit, name)
     if os.path.exists(target):
         raise SystemExit("%s: exists; not overwritten" % target)
     tmp = tempfile.mkdtemp(prefix=os.path.basename(target) + ".", dir=os.path.dirname(fit) or ".")
@@ -223,6 +227,11 @@ def main():
                     help="also write each changed variant as a fitted scene next to the fit (for eval)")
     args = ap.parse_args()
 
+    # Refused before the renders, not after them.
+    taken = [variant_folder(args.fit, v) for v in ("true normals", "on-surface only", "both")
+             if args.write and os.path.exists(variant_folder(args.fit, v))]
+    if taken:
+        raise SystemExit("%s: exists; not overwritten" % taken[0])
     frames, gt, positions, scene = open_fit(args.fit, args.frames)
     floor = truth_floor(gt, [source_number(frames[k]) for k in positions], args.spp)
     print("the truth's meshes at %d samples per pixel: %.2f deg (at its edges %.1f, %.2f of the mean)"
@@ -230,7 +239,6 @@ def main():
     params = mi.traverse(scene)
     normal0 = np.array(params["background.normal"], np.float32).reshape(-1, 3)
     opacity0 = np.array(params["background.opacities"], np.float32).ravel()
-    from mi_invrgbl.physics.gaussian_ply import read_ply
     centres = read_ply(os.path.join(args.fit, "background.ply")).centers
     if len(centres) != len(normal0):
         raise SystemExit("%s: background.ply has %d Gaussians, the loaded scene %d"
