@@ -55,7 +55,7 @@ from mi_invrgbl.eval.rendering import integrator_like, render_camera  # noqa: E4
 from mi_invrgbl.eval.scoring import EVAL_SPP  # noqa: E402
 from mi_invrgbl.physics.gaussian_ply import read_ply, write_ply  # noqa: E402
 from mi_invrgbl.scene.posing import set_frame  # noqa: E402
-from street_truth import open_fit  # noqa: E402
+from street_truth import open_fit, scene_from_truth  # noqa: E402
 from albedo_breakdown import first_channel, truth_edges  # noqa: E402
 
 #: A pixel whose fitted depth is within this fraction of the truth's shows
@@ -74,8 +74,7 @@ def truth_surface(gt, frames, positions):
     mesh = trimesh.util.concatenate(parts)
     points, faces = trimesh.sample.sample_surface(mesh, SAMPLES, seed=0)
     cams = json.loads((gt / "trajectory.json").read_text())["world_from_cam"]
-    rec = frames[positions[0]]
-    T = rec.camera_to_world @ np.linalg.inv(np.asarray(cams[source_number(rec)], np.float64))
+    T = scene_from_truth(frames[positions[0]], cams)
     return points @ T[:3, :3].T + T[:3, 3], mesh.face_normals[faces] @ T[:3, :3].T
 
 

@@ -62,7 +62,7 @@ from mi_invrgbl.physics.host_arrays import jit_array  # noqa: E402
 from mi_invrgbl.physics.lighting import SHADOW_OFFSET, transmittance  # noqa: E402
 from mi_invrgbl.scene.posing import set_frame  # noqa: E402
 from mi_invrgbl.synthetic.groundtruth import camera_rays, rows  # noqa: E402
-from street_truth import open_fit  # noqa: E402
+from street_truth import open_fit, scene_from_truth  # noqa: E402
 
 #: Materials below this share of the pixels are pooled into "other".
 MIN_SHARE = 0.01
@@ -102,7 +102,7 @@ def sun_rays(scene, gt_scene, frames, k, gt, cams, sun_gt, R):
     # truth's worlds differ by the rigid motion between their camera poses.
     cam = np.asarray(rec.camera_to_world, np.float64)
     p_fit = o + d * (depth / np.maximum(d @ cam[:3, 2], 1e-9))[:, None]
-    T = np.linalg.inv(cam @ np.linalg.inv(np.asarray(cams[n], np.float64)))
+    T = np.linalg.inv(scene_from_truth(rec, cams))
     p_gt = p_fit @ T[:3, :3].T + T[:3, 3]
     sun_fit = R @ sun_gt
     facing = (normal @ sun_gt) > 0

@@ -38,7 +38,7 @@ from mi_invrgbl.fit.sky_mask import PinholeProjection, sky_mask  # noqa: E402
 from mi_invrgbl.physics import hits as hitlib  # noqa: E402
 from mi_invrgbl.scene.posing import set_frame  # noqa: E402
 from mi_invrgbl.synthetic.groundtruth import camera_rays, rows  # noqa: E402
-from street_truth import open_fit  # noqa: E402
+from street_truth import open_fit, scene_from_truth  # noqa: E402
 
 
 def frame_geometry(scene, frames, k, gt, cams):
@@ -47,8 +47,7 @@ def frame_geometry(scene, frames, k, gt, cams):
     sensor, _ = set_frame(scene, frames, k)
     w, h = [int(v) for v in sensor.film().size()]
     ray = camera_rays(sensor, w, h)
-    cam = np.asarray(rec.camera_to_world, np.float64)
-    to_gt = np.linalg.inv(cam @ np.linalg.inv(np.asarray(cams[n], np.float64)))
+    to_gt = np.linalg.inv(scene_from_truth(rec, cams))
     return sensor, (w, h), rows(ray.o), rows(ray.d), to_gt, n
 
 

@@ -45,6 +45,14 @@ def source_number(frame):
     return int(frame.get("source_index", frame.get("source_frame", frame["index"])))
 
 
+def scene_from_truth(rec, cams):
+    """4x4 rigid map from the truth's world into the scene's: the motion
+    between frame record ``rec``'s camera pose in the scene and the same
+    frame's in the truth (``cams``: trajectory.json's ``world_from_cam``)."""
+    from mi_invrgbl.eval.ground_truth import source_number as number
+    return np.asarray(rec.camera_to_world, np.float64) @ np.linalg.inv(np.asarray(cams[number(rec)], np.float64))
+
+
 def truth_map(gt, kind, number):
     """Ground-truth map ``kind`` (albedo, normal, sun_visibility, mesh_id, ...) of a frame."""
     return read_exr(os.path.join(gt, "maps", "%06d_%s.exr" % (number, kind)))

@@ -24,7 +24,6 @@ import numpy as np
 import trimesh
 
 import street_truth  # noqa: F401  (sets the Mitsuba variant)
-from mi_invrgbl.eval.ground_truth import source_number  # noqa: E402
 from mi_invrgbl.physics.gaussian_ply import read_ply  # noqa: E402
 from mi_invrgbl.scene.frames import Frames  # noqa: E402
 
@@ -34,9 +33,7 @@ def gt_from_scene(root, gt_dir):
     import json
     frames = Frames.load(os.path.join(root, "scene.xml"))
     cams = json.load(open(os.path.join(gt_dir, "trajectory.json")))["world_from_cam"]
-    rec = frames[0]
-    scene_from_gt = rec.camera_to_world @ np.linalg.inv(np.asarray(cams[source_number(rec)], np.float64))
-    return np.linalg.inv(scene_from_gt)
+    return np.linalg.inv(street_truth.scene_from_truth(frames[0], cams))
 
 
 def main():
