@@ -58,6 +58,7 @@ def scans(hidden):
 
 
 def test_ground_removed_odometry_follows_the_street(scans, truth):
+    pytest.importorskip("kiss_icp")    # the LiDAR odometry (extra "odometry")
     _, sweeps = scans
     poses = odometry.lidar_odometry([odometry.remove_ground(s) for s in sweeps])
     err = odometry.trajectory_error(poses, truth)
@@ -67,6 +68,7 @@ def test_ground_removed_odometry_follows_the_street(scans, truth):
 
 
 def test_import_reports_the_checked_trajectory(hidden, truth, tmp_path):
+    pytest.importorskip("kiss_icp")    # the LiDAR odometry (extra "odometry")
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)        # no check may disagree here
         report = import_scene(hidden, tmp_path / "s" / "scene.xml", ImportOptions(**OPTS),
@@ -82,6 +84,7 @@ def test_import_reports_the_checked_trajectory(hidden, truth, tmp_path):
 
 
 def test_import_prints_the_length(hidden, tmp_path, capsys):
+    pytest.importorskip("kiss_icp")    # the LiDAR odometry (extra "odometry")
     assert main(["import", str(hidden), "-o", str(tmp_path / "s" / "scene.xml"), "--frames", "0:4",
                  "--max-points", "20000", "--azimuth-steps", "512"]) == 0
     out = capsys.readouterr().out
@@ -109,6 +112,7 @@ def test_images_measure_the_step(scans, truth, hidden):
 
 def test_odometry_that_misses_the_motion_is_flagged(hidden, tmp_path, monkeypatch, capsys):
     """Full sweeps on a corridor-like street reported ~1 m for 23 m: the images disagree."""
+    pytest.importorskip("kiss_icp")    # the LiDAR odometry (extra "odometry")
     real = odometry.lidar_odometry
 
     def stuck(scans, **kwargs):
@@ -125,6 +129,7 @@ def test_odometry_that_misses_the_motion_is_flagged(hidden, tmp_path, monkeypatc
 
 
 def test_impossible_speed_is_flagged(scans):
+    pytest.importorskip("kiss_icp")    # the LiDAR odometry (extra "odometry")
     _, sweeps = scans
     times = np.arange(len(sweeps)) * 0.01               # 100 m/s at 1 m per frame
     with pytest.warns(UserWarning, match="speed DISAGREE"):
