@@ -671,19 +671,27 @@ def test_stage1_leaves_stage2_time_where_the_fixed_costs_eat_the_budget():
     # The KITTI excerpt at 8 minutes on 2 cores (40 frames, 0.296 s a step;
     # its fixed costs took 190 s): stage 1 gives up part of its 240 s so
     # that stage 2 keeps 40 % of what the fixed costs leave. The street at
-    # 8 minutes (24 frames, 0.173 s), KITTI at 30 minutes and a GPU keep
-    # the full share; at 2 minutes KITTI's fixed costs leave stage 2 nothing
-    # to keep, and stage 1 keeps its share.
-    from mi_invrgbl.fit.budget import (FIXED_STEPS_PER_FRAME, MIN_STAGE2_SECONDS,
-                                       STAGE1_OF_REST, stage1_seconds)
+    # 8 minutes (24 frames, 0.173 s), KITTI at 30 minutes and a GPU at 8
+    # keep the full share; at 2 minutes KITTI's fixed costs leave stage 2
+    # nothing to keep on 2 cores, and stage 1 keeps its share.
+    from mi_invrgbl.fit.budget import (FIXED_STEPS_PER_FRAME, MIN_STAGE2_STEPS,
+                                       STAGE1_OF_REST, min_stage2_seconds, stage1_seconds)
     rest = 480 - 20 - FIXED_STEPS_PER_FRAME * 40 * 0.296
     kitti8 = stage1_seconds(8, 20.0, 40, 0.296)
     assert kitti8 == pytest.approx(STAGE1_OF_REST * rest) and 120 < kitti8 < 240
-    assert 480 - 20 - 190 - kitti8 > MIN_STAGE2_SECONDS   # what stage 2 is left
+    assert 480 - 20 - 190 - kitti8 > min_stage2_seconds(0.296)   # what stage 2 is left
     assert stage1_seconds(8, 5.0, 24, 0.173) == pytest.approx(240.0)
     assert stage1_seconds(30, 20.0, 40, 0.308) == pytest.approx(900.0)
     assert stage1_seconds(8, 20.0, 40, 0.02) == pytest.approx(240.0)
     assert stage1_seconds(2, 20.0, 40, 0.296) == pytest.approx(60.0)
+    # The same 2 minutes on one H200 (0.048 s a step, 22 s spent before
+    # stage 1; there the steps outside the stages took 69 s): the minimum
+    # is counted in steps, so stage 1 gives up time there too, and what it
+    # leaves holds stage 2's minimum at the GPU's step (3.8 configured
+    # steps) with room to spare. A minimum in seconds (30) gave none.
+    gpu2 = stage1_seconds(2, 22.0, 40, 0.048)
+    assert gpu2 < 45.0
+    assert 120 - 69 - gpu2 > MIN_STAGE2_STEPS * 3.8 * 0.048
     # Never more than the share.
     values = [stage1_seconds(m, 20.0, 40, 0.296) for m in np.linspace(2, 60, 300)]
     assert all(v <= 30 * m + 1e-9 for v, m in zip(values, np.linspace(2, 60, 300)))

@@ -429,12 +429,31 @@ FIXED_STEPS_PER_FRAME = 16
 #: stage 1 takes at most this part of what remains once they are paid, so
 #: that stage 2 keeps the rest...
 STAGE1_OF_REST = 0.6
-#: ...as long as that rest buys stage 2 at least this many seconds (less
-#: would not take it past its start, and stage 1 keeps its share). On the
-#: KITTI excerpt at 8 minutes on 2 cores the fixed costs took 190 s, stage 1
-#: its 240 s, and stage 2 ran its 5 timed steps: its start, about 2 dB below
-#: stage 1's best, was the result.
-MIN_STAGE2_SECONDS = 30.0
+#: ...as long as that rest buys stage 2 at least this many steps (fewer would
+#: not take it past its start, and stage 1 keeps its share). Stage 2 starts
+#: 1.5-2.9 dB below stage 1 on the KITTI excerpt and climbs back fast: on 2
+#: cores +1.43 dB in its first 50 steps at 8 minutes (19.54 -> 20.97 dB
+#: held-out, as trained) and +2.09 at 30 (20.07 -> 22.16), where stage 1's
+#: last 100 steps at 8 minutes added 0.17 dB. At 8 minutes the fixed costs
+#: took 190 s, stage 1 its 240 s, and stage 2 ran its 5 timed steps: its
+#: start, about 2 dB below stage 1's best, was the result.
+MIN_STAGE2_STEPS = 50
+#: A stage-2 step's cost in configured stage-1 steps (stage 2 renders whole
+#: frames and scores its validation frames as it goes): 2.5 on 2 cores
+#: (KITTI: 0.58 s against 0.23 s), which keeps the 2-core fits' plans as
+#: they were; 3.8 on one H200 (the street: 0.088 s against 0.023 s), where
+#: per-step overhead dominates, so there the minimum buys about 33 steps.
+#: The minimum was 30 s of stage 2 whatever the machine: 50 steps on 2
+#: cores but some 300 on a GPU. A 2-minute KITTI fit on one H200 had about
+#: 27 s to give stage 2, fell under it, kept all of stage 1's share, and
+#: ended 1.2 dB below stage 1 after 5 stage-2 steps.
+STAGE2_STEP_COST = 2.5
+
+
+def min_stage2_seconds(seconds_per_step) -> float:
+    """Seconds that buy stage 2 :data:`MIN_STAGE2_STEPS` steps, from a
+    configured stage-1 step's ``seconds_per_step``."""
+    return MIN_STAGE2_STEPS * STAGE2_STEP_COST * seconds_per_step
 
 
 def stage1_seconds(minutes, elapsed, frames, seconds_per_step) -> float:
@@ -442,10 +461,11 @@ def stage1_seconds(minutes, elapsed, frames, seconds_per_step) -> float:
     or less where the steps no budget shrinks (estimated as in
     :func:`small_budget_warning` from ``frames`` and a configured stage-1
     step's ``seconds_per_step``; ``elapsed`` seconds already spent) would
-    leave stage 2 too little (:data:`STAGE1_OF_REST`)."""
+    leave stage 2 too little (:data:`STAGE1_OF_REST`), as long as what is
+    left buys stage 2 its :data:`MIN_STAGE2_STEPS`."""
     share = SHARES["stage 1"] * 60.0 * minutes
     rest = 60.0 * minutes - elapsed - fixed_costs(frames, seconds_per_step)
-    if (1.0 - STAGE1_OF_REST) * rest < MIN_STAGE2_SECONDS:
+    if (1.0 - STAGE1_OF_REST) * rest < min_stage2_seconds(seconds_per_step):
         return share
     return min(share, STAGE1_OF_REST * rest)
 
