@@ -498,6 +498,26 @@ def test_return_samples_follow_the_moving_object(fit_dir):
     obs = np.concatenate(obs)
     assert ret.all() and dist.shape == obs.shape
     np.testing.assert_allclose(dist, obs, atol=1e-3)
+    # A budget of beams: every stride-th beam of each frame, starting at the
+    # frame's position modulo stride, each the same sample as rendered in
+    # full (here every beam that reaches a surface is an observed hit).
+    size = int(np.prod(read_exr(str(fit_dir / "observations" / "lidar_0002.exr"))[0].shape[:2]))
+    budget = 3 * size // 4
+    stride = int(np.ceil(3 * size / budget))
+    keep = []
+    for i in (2, 0, 1):
+        arr, names = read_exr(str(fit_dir / "observations" / ("lidar_%04d.exr" % i)))
+        hit = arr[..., names.index("hit")].ravel() > 0.5
+        picked = np.zeros(hit.size, bool)
+        picked[i % stride::stride] = True
+        keep.append(picked[hit])
+    keep = np.concatenate(keep)
+    assert stride > 1
+    sub = scene_return_samples(scene, integ, frames, [2, 0, 1], max_beams=budget)
+    full = (dist, cos, rho, beam, ret)
+    assert 0 < sub[0].size == keep.sum() < full[0].size
+    for a, b in zip(sub, full):
+        np.testing.assert_allclose(a, b[keep], atol=1e-5)
 
 
 def test_metrics_json_is_strict_with_non_finite_scores(tmp_path):

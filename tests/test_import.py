@@ -54,7 +54,8 @@ def street(tiny_street):
 @pytest.fixture(scope="session")
 def imported(street, tmp_path_factory):
     out = tmp_path_factory.mktemp("import_out") / "scene" / "scene.xml"
-    report = import_scene(street, out, ImportOptions(check_odometry=HAVE_KISS_ICP, **TINY_OPTS), log=_quiet)
+    report = import_scene(street, out, ImportOptions(check_odometry=HAVE_KISS_ICP, **TINY_OPTS),
+                          log=_quiet)
     return out.parent, report
 
 

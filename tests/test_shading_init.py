@@ -296,3 +296,29 @@ def test_a_start_that_could_not_be_scored_is_never_chosen_for_its_spread():
     assert shading_init.choose_start([inf, 27.0, 26.5], [0.01, 0.3, 0.2]) == 2
     assert shading_init.choose_start([inf, inf], [0.3, 0.2]) == 1
     assert shading_init.choose_start([27.0, 26.8], [np.nan, 0.2]) == 0
+
+
+def test_light_level_search_stops_once_the_score_falls():
+    from mi_invrgbl.fit.shading_init import search_levels
+    levels = [1.0, 1.2, 1.4, 1.7, 2.0]
+
+    def run(curve):
+        asked = []
+
+        def score_at(k):
+            asked.append(k)
+            return curve[levels.index(k)]
+        return search_levels(levels, score_at), asked
+    # Falling from the first raise (KITTI's 8-minute start): two scored, 1x kept,
+    # and the scene holds 1.2x, so the caller sets 1x again.
+    (best, scores, last), asked = run([18.93, 18.73, 18.43, 18.04, 17.57])
+    assert (best, last) == (1.0, 1.2) and asked == [1.0, 1.2] and set(scores) == {1.0, 1.2}
+    # Rising then falling: stops one past the peak.
+    (best, scores, last), asked = run([16.0, 17.0, 17.5, 17.2, 18.0])
+    assert best == 1.4 and asked == [1.0, 1.2, 1.4, 1.7] and last == 1.7
+    # Rising throughout (a dark scene under a bridge): every level, the last kept.
+    (best, _, last), asked = run([8.0, 11.0, 13.0, 15.0, 16.0])
+    assert best == last == 2.0 and asked == levels
+    # A score that is not finite counts as the worst, and ends the search.
+    (best, scores, _), asked = run([18.0, float("nan"), 19.0, 19.5, 20.0])
+    assert best == 1.0 and scores[1.2] == -np.inf and asked == [1.0, 1.2]

@@ -508,7 +508,8 @@ def fit_return_model(distance, cos_theta, albedo, beam, returned, n_beams: int,
     return ReturnModel(theta[1:], theta[0] + dev)
 
 
-def scene_return_samples(scene, integrator, frames, positions, lidar_size=None, log=print):
+def scene_return_samples(scene, integrator, frames, positions, lidar_size=None, log=print,
+                         max_beams=None):
     """Samples for :func:`fit_return_model` from frames of a fitted scene.
 
     For each frame position: the scene posed at that frame, its LiDAR sensor's
@@ -516,8 +517,14 @@ def scene_return_samples(scene, integrator, frames, positions, lidar_size=None, 
     observed range image's ``hit`` channel. Returns numpy arrays
     ``(distance, cos, albedo, beam, returned)`` over beams that reach a
     surface and that the frame's LiDAR mask does not exclude.
+
+    ``max_beams``: render about this many beams over all the frames: every
+    ``stride``-th beam of each frame, ``stride`` set from the first frame's
+    beams (row-major, starting at the frame's position modulo ``stride``, so
+    that consecutive frames take different beams). None: every beam.
     """
     import drjit as dr
+    import mitsuba as mi
     from .observations import lidar_exclusion
     from ..io.images import read_exr
     from ..plugins.lidar_return import LidarReturnIntegrator
@@ -525,6 +532,7 @@ def scene_return_samples(scene, integrator, frames, positions, lidar_size=None, 
     saved = integrator.return_model
     integrator.return_model = None
     out = [[] for _ in range(5)]
+    stride = None
     try:
         for k in positions:
             rec = frames[k]
@@ -541,6 +549,16 @@ def scene_return_samples(scene, integrator, frames, positions, lidar_size=None, 
             excluded = lidar_exclusion(rec, img.shape[:2], log)
             counts = np.ones(hit_obs.size, bool) if excluded is None else ~excluded.ravel()
             rays, beam, _, near = LidarReturnIntegrator.beam_rays(sensor)
+            if stride is None:
+                stride = 1 if not max_beams else max(
+                    1, int(np.ceil(len(positions) * hit_obs.size / max_beams)))
+            keep = np.arange(k % stride, hit_obs.size, stride) if stride > 1 else None
+            if keep is not None:
+                idx = mi.UInt32(keep.astype(np.uint32))
+                rays = dr.gather(mi.Ray3f, rays, idx)
+                beam = dr.gather(type(beam), beam, idx)
+                near = dr.gather(mi.Float, near, idx) if dr.width(near) > 1 else near
+                hit_obs, counts = hit_obs[keep], counts[keep]
             extra = {}
             with dr.suspend_grad():
                 ch = integrator.render_beams(scene, rays, beam, near=near, extra=extra)
@@ -576,6 +594,16 @@ def write_return_model(scene_lidar_xml, model) -> None:
     atomic_write(scene_lidar_xml, lambda tmp: tree.write(tmp, encoding="unicode"))
 
 
+#: Beams :func:`fit_scene_ray_drop` renders, spread over the training frames.
+#: The model has three weights and one offset per beam; rendering every beam
+#: of the KITTI excerpt's 32 frames (2.1 million, 1.9 million reaching a
+#: surface) took 31 s of a fit's outputs on 2 cores. Every 16th beam of each
+#: frame (131 000) took 7.7 s, moved the weights by 0.001 at most and scored
+#: the same drop accuracy on every beam (0.8829 against 0.8828; F1 0.0807
+#: against 0.0813). The cost per frame does not fall below about 0.2 s.
+RAY_DROP_BEAMS = 150_000
+
+
 def fit_scene_ray_drop(scene_xml, scene_lidar_xml, frames=None, log=print) -> dict:
     """Fit the ray-drop model of a fitted scene on its training frames and
     write it into ``scene_lidar_xml``; returns the fit's summary. ``frames``
@@ -592,7 +620,8 @@ def fit_scene_ray_drop(scene_xml, scene_lidar_xml, frames=None, log=print) -> di
     integrator = mi.load_string('<scene version="3.0.0">%s</scene>'
                                 % ET.tostring(integ_el, encoding="unicode")).integrator()
     train = [k for k in range(len(frames)) if not frames[k].held_out]
-    d, c, rho, beam, ret = scene_return_samples(scene, integrator, frames, train, log=log)
+    d, c, rho, beam, ret = scene_return_samples(scene, integrator, frames, train, log=log,
+                                                max_beams=RAY_DROP_BEAMS)
     n_beams = max(int(frames.lidar.beams) if frames.lidar is not None else 1,
                   int(beam.max()) + 1 if beam.size else 1)
     model = fit_return_model(d, c, rho, beam, ret, n_beams)

@@ -240,6 +240,8 @@ class Stage2:
         #: Steps taken since the lighting caches last followed the normals.
         self.lighting_stale = False
         self.retraced = {"refreshes": 0, "gaussians": 0, "seconds": 0.0}
+        #: Validation scorings of the start's choices: count, seconds.
+        self.start_scorings = [0, 0.0]
         self.build_optimizer()
 
     def variables(self):
@@ -352,7 +354,7 @@ class Stage2:
             report = self._choose_roughness(report, self._start_score(report), True,
                                             lambda: start(None, False))
             self.build_optimizer()
-            return report
+            return self._with_scorings(report)
         directions = sun.get("alternatives") or [
             np.array(dr.detach(ctx.params[ctx.sun_dir_key]), np.float64).ravel().tolist()]
         trials = []
@@ -384,6 +386,11 @@ class Stage2:
                                for sc, dd, _, r in trials]}
         sun["direction"] = list(map(float, d))
         self.build_optimizer()
+        return self._with_scorings(report)
+
+    def _with_scorings(self, report):
+        report["scorings"] = {"count": self.start_scorings[0],
+                              "seconds": round(self.start_scorings[1], 2)}
         return report
 
     def start_under(self, sky, direction, trust_facings):
@@ -563,14 +570,16 @@ class Stage2:
             sky0, E0 = dr.detach(ctx.params[ctx.sky_key]), E if suns else None
             levels = [1.0] if k_max <= 1.0 else [float(k_max ** q) for q in (0, 0.25, 0.5, 0.75, 1)]
             scores = {}
-            for k in levels:
+            if len(levels) == 1:
+                k = levels[0]
                 self._set_light_level(k, sky0, E0, light, names, table, counts)
-                if len(levels) > 1:
-                    score = self._starting_score()
-                    scores[k] = score if np.isfinite(score) else -np.inf
-            k = max(levels, key=lambda v: scores.get(v, 0.0))
-            if k != levels[-1]:
-                self._set_light_level(k, sky0, E0, light, names, table, counts)
+            else:
+                def score_at(level):
+                    self._set_light_level(level, sky0, E0, light, names, table, counts)
+                    return self._starting_score()
+                k, scores, last = shading_init.search_levels(levels, score_at)
+                if k != last:
+                    self._set_light_level(k, sky0, E0, light, names, table, counts)
             if suns:
                 report["sun_irradiance"] = (E0 * k).tolist()
                 if rho is not None:
@@ -673,8 +682,12 @@ class Stage2:
         """PSNR of the current starting point on up to three of the frames
         that score model choices (:attr:`FitState.selection_frames`)."""
         from .evaluate import score_stage2
+        t = time.perf_counter()
         frames = [f for f in self.ctx.selection_frames if f.camera is not None][:3]
         psnr, _ = score_stage2(self, frames)
+        # What the start's choices cost (metrics.json shading_init.scorings).
+        self.start_scorings[0] += 1
+        self.start_scorings[1] += time.perf_counter() - t
         return psnr
 
     def lighting(self, nodes, cache, samples=None, pattern=0, frame=None):
