@@ -526,6 +526,7 @@ def scene_return_samples(scene, integrator, frames, positions, lidar_size=None, 
     import drjit as dr
     import mitsuba as mi
     from .observations import lidar_exclusion
+    from ..physics.host_arrays import jit_array
     from ..io.images import read_exr
     from ..plugins.lidar_return import LidarReturnIntegrator
     from ..scene.posing import set_frame
@@ -554,7 +555,7 @@ def scene_return_samples(scene, integrator, frames, positions, lidar_size=None, 
                     1, int(np.ceil(len(positions) * hit_obs.size / max_beams)))
             keep = np.arange(k % stride, hit_obs.size, stride) if stride > 1 else None
             if keep is not None:
-                idx = mi.UInt32(keep.astype(np.uint32))
+                idx = jit_array(mi.UInt32, keep.astype(np.uint32))
                 rays = dr.gather(mi.Ray3f, rays, idx)
                 beam = dr.gather(type(beam), beam, idx)
                 near = dr.gather(mi.Float, near, idx) if dr.width(near) > 1 else near
