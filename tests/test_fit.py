@@ -1325,7 +1325,12 @@ def test_stage2_start_chooses_among_sun_directions(scene_path, tmp_path, monkeyp
     from mi_invrgbl.fit.shading_init import START_PSNR_MARGIN, choose_start
     from fit_scene import SUN
     true = np.array(SUN) / np.linalg.norm(SUN)
-    wrong = np.array([0.6, -0.5, 0.62]) / np.linalg.norm([0.6, -0.5, 0.62])
+    # Far enough from the truth that the validation frames rule its start
+    # out (13.3-13.4 dB against 18.3 in four runs, beyond START_PSNR_MARGIN).
+    # A nearer one, (0.6, -0.5, 0.62), started 1.5-2.1 dB below and with an
+    # albedo spread close to the true sun's, and once in a CI run its start
+    # was kept.
+    wrong = np.array([0.9, 0.1, 0.35]) / np.linalg.norm([0.9, 0.1, 0.35])
     monkeypatch.setattr(selection, "alternative_directions",
                         lambda *a: [wrong.tolist(), true.tolist()])
     metrics = run_fit(scene_path, small_config(tmp_path, sun="on", render_samples="8",
@@ -1374,7 +1379,12 @@ def test_stage2_start_made_again_when_the_best_was_not_the_last(scene_path, tmp_
     from mi_invrgbl.fit import selection, stage2
     from fit_scene import SUN
     true = np.array(SUN) / np.linalg.norm(SUN)
-    wrong = np.array([0.6, -0.5, 0.62]) / np.linalg.norm([0.6, -0.5, 0.62])
+    # Far enough from the truth that the validation frames rule its start
+    # out (13.3-13.4 dB against 18.3 in four runs, beyond START_PSNR_MARGIN).
+    # A nearer one, (0.6, -0.5, 0.62), started 1.5-2.1 dB below and with an
+    # albedo spread close to the true sun's, and once in a CI run its start
+    # was kept.
+    wrong = np.array([0.9, 0.1, 0.35]) / np.linalg.norm([0.9, 0.1, 0.35])
     monkeypatch.setattr(selection, "alternative_directions",
                         lambda *a: [true.tolist(), wrong.tolist()])
     monkeypatch.setattr(stage2, "START_ROUGHNESS", ())
