@@ -490,24 +490,23 @@ def test_return_samples_follow_the_moving_object(fit_dir):
     scene = mi.load_file(str(fit_dir / "scene.xml"))
     integ = load_lidar_integrator(fit_dir / "scene_lidar.xml")
     dist, cos, rho, beam, ret = scene_return_samples(scene, integ, frames, [2, 0, 1])
-    obs = []
+    obs, hits = [], []
     for i in (2, 0, 1):
         arr, names = read_exr(str(fit_dir / "observations" / ("lidar_%04d.exr" % i)))
         hit = arr[..., names.index("hit")].ravel() > 0.5
         obs.append(arr[..., names.index("range")].ravel()[hit])
+        hits.append(hit)
     obs = np.concatenate(obs)
     assert ret.all() and dist.shape == obs.shape
     np.testing.assert_allclose(dist, obs, atol=1e-3)
     # A budget of beams: every stride-th beam of each frame, starting at the
     # frame's position modulo stride, each the same sample as rendered in
     # full (here every beam that reaches a surface is an observed hit).
-    size = int(np.prod(read_exr(str(fit_dir / "observations" / "lidar_0002.exr"))[0].shape[:2]))
+    size = hits[0].size
     budget = 3 * size // 4
     stride = int(np.ceil(3 * size / budget))
     keep = []
-    for i in (2, 0, 1):
-        arr, names = read_exr(str(fit_dir / "observations" / ("lidar_%04d.exr" % i)))
-        hit = arr[..., names.index("hit")].ravel() > 0.5
+    for i, hit in zip((2, 0, 1), hits):
         picked = np.zeros(hit.size, bool)
         picked[i % stride::stride] = True
         keep.append(picked[hit])

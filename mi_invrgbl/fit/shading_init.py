@@ -238,14 +238,14 @@ def search_levels(levels, score_at):
     logged, the score fell from the first or second raise on (KITTI 8
     minutes: 18.93, 18.73, 18.43, 18.04, 17.57 dB; the street 28.17, 28.16,
     28.12, 28.10), and a start is made five to seven times."""
-    scores = {}
+    scores, previous = {}, None
     for k in levels:
         score = score_at(k)
         scores[k] = score if np.isfinite(score) else -np.inf
-        if len(scores) > 1 and scores[k] < list(scores.values())[-2]:
+        if previous is not None and scores[k] < previous:
             break
-    best = max(scores, key=scores.get)
-    return best, scores, k
+        previous = scores[k]
+    return max(scores, key=scores.get), scores, k
 
 
 def albedo_from_shading(colour, sky_term, sun_term):
