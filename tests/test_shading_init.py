@@ -322,3 +322,70 @@ def test_light_level_search_stops_once_the_score_falls():
     # A score that is not finite counts as the worst, and ends the search.
     (best, scores, _), asked = run([18.0, float("nan"), 19.0, 19.5, 20.0])
     assert best == 1.0 and scores[1.2] == -np.inf and asked == [1.0, 1.2]
+
+
+def _clipped_start(missed, invented, albedo_scale):
+    """A start whose albedo clipped: ``_street`` with its albedo scaled (bright
+    surfaces in invented shadows need more than 1, dark ones in missed shadows
+    less than the floor), the albedo made from the traced visibility."""
+    s = _street(missed=missed, invented=invented)
+    s["albedo"] = s["albedo"] * albedo_scale
+    s["colour"] = s["albedo"] * (s["sky"] + s["E"][None] * (s["true_v"] * s["cos"])[:, None] / np.pi)
+    per_v = s["E"][None] * s["cos"][:, None] / np.pi
+    a = shading_init.albedo_from_shading(s["colour"], s["sky"], per_v * s["traced"][:, None])
+    return s, per_v, a
+
+
+def _reproduced(s, per_v, v):
+    a = shading_init.albedo_from_shading(s["colour"], s["sky"], per_v * v[:, None])
+    return a * (s["sky"] + per_v * v[:, None])
+
+
+@pytest.mark.parametrize("lidar", [True, False])
+def test_clipped_albedo_takes_the_visibility_that_reproduces_the_colour(lidar):
+    # Bright surfaces (albedo up to 1.17) under invented shadows clip at 1.
+    s, per_v, a = _clipped_start(missed=0.0, invented=0.3, albedo_scale=1.3)
+    top = (a >= 0.999).any(axis=1)
+    assert top.mean() > 0.1
+    v, raised, lowered = shading_init.unclip_visibility(
+        s["colour"], s["sky"], per_v, s["traced"], a, s["seen"], s["lidar"] if lidar else None)
+    assert raised > 0.05 and lowered == 0
+    assert np.all(v >= s["traced"]) and v.min() >= 0 and v.max() <= 1   # only raised
+    before = np.abs(_reproduced(s, per_v, s["traced"]) - s["colour"]).mean()
+    after = np.abs(_reproduced(s, per_v, v) - s["colour"]).mean()
+    assert after < 0.3 * before, (before, after)
+    # Gaussians that did not clip keep the trace's visibility.
+    assert np.array_equal(v[~top], s["traced"][~top])
+    # With the LiDAR albedo, the invented shadows come out sunlit.
+    invented = (s["true_v"] == 1) & (s["traced"] == 0) & top
+    if lidar:
+        assert np.mean(v[invented] > 0.9) > 0.9
+
+
+def test_albedo_at_the_floor_takes_less_sun_and_unseen_gaussians_keep_theirs():
+    # Dark surfaces in shadows the trace missed: the sunlit render is too
+    # bright for them even at the albedo's floor.
+    s, per_v, a = _clipped_start(missed=1.0, invented=0.0, albedo_scale=0.04)
+    floor = (a <= 0.0201).any(axis=1)
+    assert floor.mean() > 0.05
+    seen = s["seen"].copy()
+    seen[::2] = False
+    v, raised, lowered = shading_init.unclip_visibility(s["colour"], s["sky"], per_v, s["traced"],
+                                                        a, seen, s["lidar"])
+    assert lowered > 0 and raised == 0 and np.all(v <= s["traced"])
+    assert np.array_equal(v[~seen], s["traced"][~seen])
+    changed = floor & seen
+    err = lambda vv: np.abs(_reproduced(s, per_v, vv) - s["colour"])[changed].mean()
+    assert err(v) < 0.5 * err(s["traced"])
+
+
+def test_unclip_stays_finite_on_nan_and_without_sun():
+    s, per_v, a = _clipped_start(missed=0.5, invented=0.3, albedo_scale=1.3)
+    colour = s["colour"].copy()
+    colour[::5] = np.nan
+    v, _, _ = shading_init.unclip_visibility(colour, s["sky"], per_v, s["traced"], a, s["seen"],
+                                             s["lidar"])
+    assert np.all(np.isfinite(v)) and v.min() >= 0 and v.max() <= 1
+    v0, raised, lowered = shading_init.unclip_visibility(s["colour"], s["sky"], per_v * 0.0,
+                                                         s["traced"], a, s["seen"], s["lidar"])
+    assert raised == lowered == 0 and np.array_equal(v0, s["traced"])

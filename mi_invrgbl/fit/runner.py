@@ -567,6 +567,12 @@ def start_stage2(state: FitState, frozen, initialise=True):
                       "PSNR %s)" % (si["light_scale"], ", ".join(
                           "%sx %s dB" % (k, "-" if v is None else "%.2f" % v)
                           for k, v in si["light_scale_scores"].items())))
+        if si.get("unclipped", {}).get("psnr_after") is not None:
+            u = si["unclipped"]
+            state.log("[fit] sun visibility where the start's albedo clipped: raised on %.1f %%, "
+                      "lowered on %.1f %% of the seen Gaussians; starting PSNR %.2f -> %.2f dB (%s)"
+                      % (100 * u["raised"], 100 * u["lowered"], u["psnr_before"], u["psnr_after"],
+                         "kept" if u["kept"] else "not kept"))
     return stage2
 
 

@@ -242,6 +242,8 @@ class Stage2:
         self.retraced = {"refreshes": 0, "gaussians": 0, "seconds": 0.0}
         #: Validation scorings of the start's choices: count, seconds.
         self.start_scorings = [0, 0.0]
+        #: The light of the start the scene holds (set by :meth:`_init_shading`).
+        self._start_light = None
         self.build_optimizer()
 
     def variables(self):
@@ -385,8 +387,45 @@ class Stage2:
                                 "psnr": sc if np.isfinite(sc) else None}
                                for sc, dd, _, r in trials]}
         sun["direction"] = list(map(float, d))
+        self._unclip(report)
         self.build_optimizer()
         return self._with_scorings(report)
+
+    def _unclip(self, report):
+        """Where the kept start's albedo clipped, the sun visibility that
+        lets it reproduce stage 1's colour
+        (:func:`~.shading_init.unclip_visibility`), and the albedo made
+        again under it; kept if the start then scores at least as well on
+        the validation frames (``unclipped`` in the report). Only where
+        stage 2 learns the visibility (a traced one stays the trace's)."""
+        state = self._start_light
+        if not self.learn_sun_visibility or state is None or state[7] is None:
+            return
+        light, k, sky0, E0, names, table, counts, (vis, cos, rho, seen) = state
+        colour, spec, D, sun_term, bounce, indirect, t_out = light
+        model = self.ctx.model
+        albedo = np.concatenate([model.nodes[n].numpy("albedo") for n in names]).astype(np.float64)
+        had = np.concatenate([model.nodes[n].numpy("sun_visibility") for n in names]).astype(np.float64)
+        ambient = (D + (indirect(albedo) if indirect is not None else bounce)) * k * t_out
+        per_v = E0[None, :] * cos[:, None] / np.pi * k * t_out
+        v, raised, lowered = shading_init.unclip_visibility(colour - spec * k, ambient, per_v, had,
+                                                            albedo, seen, rho)
+        entry = {"raised": round(raised, 4), "lowered": round(lowered, 4)}
+        if raised + lowered > 0:
+            before = self._start_score(report)
+
+            def start_with(visibility):
+                for name, x in zip(names, shading_init.split_by_node(visibility, table, counts)):
+                    model.nodes[name].values["sun_visibility"] = jit_array(mi.Float, x)
+                self._set_light_level(k, sky0, E0, (colour, spec, D, E0[None, :] * (
+                    visibility * cos)[:, None] / np.pi, bounce, indirect, t_out), names, table,
+                    counts)
+            start_with(v)
+            after = self._starting_score()
+            entry.update(psnr_before=before, psnr_after=after, kept=bool(after >= before))
+            if after < before:
+                start_with(had)
+        report["unclipped"] = entry
 
     def _with_scorings(self, report):
         report["scorings"] = {"count": self.start_scorings[0],
@@ -588,6 +627,9 @@ class Stage2:
                         albedo, rho, np.array(table.center, np.float64).T,
                         np.where(seen, seen_w, 0.0))
             report["light_scale"] = float(k)
+            # What :meth:`_unclip` needs of the start the scene now holds.
+            self._start_light = (light, k, sky0, E0, names, table, counts,
+                                 (vis, cos, rho, seen) if suns else None)
             if scores:
                 report["light_scale_scores"] = {"%.3g" % v: sc if np.isfinite(sc) else None
                                                 for v, sc in scores.items()}
