@@ -697,6 +697,20 @@ def test_stage1_leaves_stage2_time_where_the_fixed_costs_eat_the_budget():
     assert all(v <= 30 * m + 1e-9 for v, m in zip(values, np.linspace(2, 60, 300)))
 
 
+def test_stage2_keeps_its_least_steps_past_the_budget():
+    # KITTI at 8 minutes on a slower machine: 2 s left after the fixed costs
+    # (less the reserve) would give stage 2 its timed steps alone; it gets
+    # its least steps instead, and the fit says it runs past the budget.
+    from mi_invrgbl.fit.budget import MIN_STAGE2_STEPS, stage2_seconds
+    seconds, least = stage2_seconds(left=26.0, reserve=24.0, seconds_per_step2=0.75)
+    assert least and seconds == pytest.approx(MIN_STAGE2_STEPS * 0.75)
+    seconds, least = stage2_seconds(left=5.0, reserve=24.0, seconds_per_step2=0.75)
+    assert least and seconds == pytest.approx(MIN_STAGE2_STEPS * 0.75)   # (nothing left at all)
+    # Where the budget leaves more, stage 2 takes what it leaves.
+    seconds, least = stage2_seconds(left=300.0, reserve=24.0, seconds_per_step2=0.75)
+    assert not least and seconds == pytest.approx(276.0)
+
+
 def test_validation_stop_returns_to_the_best_state():
     # A stage whose validation score peaks at iteration 2 and falls after:
     # it stops after PATIENCE evaluations without a gain and goes back to

@@ -40,8 +40,8 @@ from .budget import (OUTPUT_RESERVE, TIMED, Budget, EarlyStop, Replan,
                      overrun_report, plan_stage, position_lr_factor, probe_batch_scale,
                      PLATEAU_LR_FACTOR, PLATEAU_REDUCTIONS, VALIDATION_SHARE, anneal_lr_factor,
                      small_budget_warning, stage1_seconds, stage_progress, time_iterations,
-                     STAGE1_MAX_STEPS, STAGE2_EVAL_INTERVAL,
-                     fixed_costs, resumed_plan, resumed_progress)
+                     STAGE1_MAX_STEPS, STAGE2_EVAL_INTERVAL, MIN_STAGE2_STEPS,
+                     fixed_costs, resumed_plan, resumed_progress, stage2_seconds)
 from .checkpoint import checkpoint_path, fingerprint, load_checkpoint, save_checkpoint
 from .config import FitConfig  # noqa: F401  (the fit's options, imported from here by callers)
 from .evaluate import score_stage2
@@ -297,10 +297,16 @@ def fit_materials(state: FitState, stage2, start, checkpoint, budget=None, fresh
         # more steps stop paying (KITTI at 30 minutes: at step 940 of 1130,
         # 500 s before the budget's end).
         reserve = state.config.lobe_iterations * spi + OUTPUT_RESERVE * 60 * budget.minutes
-        seconds = max(0.0, budget.left() - reserve)
+        seconds, least = stage2_seconds(budget.left(), reserve, spi)
         plan = plan_stage("stage 2", seconds, spi, done=start, batched=False,
                           longest_interval=STAGE2_EVAL_INTERVAL)
-        if seconds < budget.share("stage 2"):
+        if least:
+            state.log("[fit] budget: stage 2 gets its least %d steps (%.0f s), %.0f s past what the "
+                      "budget leaves it: the fixed costs so far took %.0f s, and fewer steps would "
+                      "end the fit below stage 1" % (MIN_STAGE2_STEPS, seconds,
+                                                      seconds - max(0.0, budget.left() - reserve),
+                                                      t - budget.t_start))
+        elif seconds < budget.share("stage 2"):
             state.log("[fit] budget: stage 2 gets %.0f of its %.0f s (the fixed costs so far took "
                       "%.0f s; a larger --budget gives it its share)"
                       % (seconds, budget.share("stage 2"), t - budget.t_start))
