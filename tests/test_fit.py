@@ -711,6 +711,19 @@ def test_stage2_keeps_its_least_steps_past_the_budget():
     assert not least and seconds == pytest.approx(276.0)
 
 
+def test_a_spent_deadline_stops_stage2_only_after_its_least_steps():
+    import types
+    from mi_invrgbl.fit.runner import ValidationStop
+    state = types.SimpleNamespace(validation_frames=[], selection={}, log=print)
+    plan = types.SimpleNamespace(eval_every=10, name="stage 2")
+    stop = ValidationStop(state, plan, deadline=-1.0, score=lambda: 0.0, not_before=54)
+    assert all(stop(it) is None for it in range(4, 54))
+    assert stop(54) == "its share of the budget is spent"
+    # Without a least step count the spent deadline stops it at once.
+    stop = ValidationStop(state, plan, deadline=-1.0, score=lambda: 0.0)
+    assert stop(4) == "its share of the budget is spent"
+
+
 def test_validation_stop_returns_to_the_best_state():
     # A stage whose validation score peaks at iteration 2 and falls after:
     # it stops after PATIENCE evaluations without a gain and goes back to
