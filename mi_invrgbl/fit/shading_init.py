@@ -211,6 +211,13 @@ def settle_sun_and_visibility(colour, ambient, sun_irradiance, source, traced, c
 ALBEDO_FLOOR, ALBEDO_TOP = 0.02, 1.0
 
 
+def clipped_albedo(albedo):
+    """Per Gaussian, whether its albedo (N, 3) clipped at the top of the
+    range in some channel, and whether at the floor (and not at the top)."""
+    top = (albedo >= ALBEDO_TOP - 1e-3).any(axis=1)
+    return top, (albedo <= ALBEDO_FLOOR + 1e-4).any(axis=1) & ~top
+
+
 def unclip_visibility(target, ambient, sun_per_visibility, visibility, albedo, seen,
                       lidar_albedo=None):
     """Sun visibility that lets clipped albedo reproduce stage 1's colour.
@@ -240,8 +247,8 @@ def unclip_visibility(target, ambient, sun_per_visibility, visibility, albedo, s
     """
     t, a_l = target @ LUMINANCE, ambient @ LUMINANCE
     s_l = sun_per_visibility @ LUMINANCE
-    top = seen & (albedo >= ALBEDO_TOP - 1e-3).any(axis=1)
-    floor = seen & (albedo <= ALBEDO_FLOOR + 1e-4).any(axis=1) & ~top
+    top, floor = clipped_albedo(albedo)
+    top, floor = seen & top, seen & floor
     lit_able = s_l > 1e-4 * np.maximum(a_l, 1e-6)
     want = np.where(top, ALBEDO_TOP, ALBEDO_FLOOR)
     if lidar_albedo is not None:

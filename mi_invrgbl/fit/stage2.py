@@ -34,6 +34,7 @@ the dark patch is explained as shadow instead.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import drjit as dr
@@ -210,6 +211,27 @@ class FrozenScene:
             attributes = {f.name: normal if f.name == "normal" else values[key(f)] for f in MATERIAL}
             out.append(VirtualNode(model.shape_ids[name], data, opac, attributes, node.count))
         return out
+
+
+@dataclass
+class StartLight:
+    """The light of the start the scene holds (:meth:`Stage2._init_shading`),
+    as :meth:`Stage2._unclip` needs it: the per-Gaussian terms
+    :meth:`Stage2._set_light_level` takes (``light``), the level ``k``, the
+    sky and sun at level 1, the Gaussians' order, and, with a sun, each
+    one's sun visibility, incidence cosine, LiDAR albedo (or None) and
+    whether the cameras see it."""
+    light: tuple
+    k: float
+    sky0: object
+    sun0: np.ndarray | None
+    names: list
+    table: object
+    counts: list
+    visibility: np.ndarray | None = None
+    cos: np.ndarray | None = None
+    lidar_albedo: np.ndarray | None = None
+    seen: np.ndarray | None = None
 
 
 class Stage2:
@@ -398,18 +420,19 @@ class Stage2:
         again under it; kept if the start then scores at least as well on
         the validation frames (``unclipped`` in the report). Only where
         stage 2 learns the visibility (a traced one stays the trace's)."""
-        state = self._start_light
-        if not self.learn_sun_visibility or state is None or state[7] is None:
+        st = self._start_light
+        if not self.learn_sun_visibility or st is None or st.visibility is None:
             return
-        light, k, sky0, E0, names, table, counts, (vis, cos, rho, seen) = state
-        colour, spec, D, sun_term, bounce, indirect, t_out = light
+        k, sky0, E0, names, table, counts = st.k, st.sky0, st.sun0, st.names, st.table, st.counts
+        cos = st.cos
+        colour, spec, D, sun_term, bounce, indirect, t_out = st.light
         model = self.ctx.model
         albedo = np.concatenate([model.nodes[n].numpy("albedo") for n in names]).astype(np.float64)
         had = np.concatenate([model.nodes[n].numpy("sun_visibility") for n in names]).astype(np.float64)
         ambient = (D + (indirect(albedo) if indirect is not None else bounce)) * k * t_out
         per_v = E0[None, :] * cos[:, None] / np.pi * k * t_out
         v, raised, lowered = shading_init.unclip_visibility(colour - spec * k, ambient, per_v, had,
-                                                            albedo, seen, rho)
+                                                            albedo, st.seen, st.lidar_albedo)
         entry = {"raised": round(raised, 4), "lowered": round(lowered, 4)}
         if raised + lowered > 0:
             before = self._start_score(report)
@@ -628,8 +651,10 @@ class Stage2:
                         np.where(seen, seen_w, 0.0))
             report["light_scale"] = float(k)
             # What :meth:`_unclip` needs of the start the scene now holds.
-            self._start_light = (light, k, sky0, E0, names, table, counts,
-                                 (vis, cos, rho, seen) if suns else None)
+            self._start_light = StartLight(light, k, sky0, E0, names, table, counts)
+            if suns:
+                self._start_light.visibility, self._start_light.cos = vis, cos
+                self._start_light.lidar_albedo, self._start_light.seen = rho, seen
             if scores:
                 report["light_scale_scores"] = {"%.3g" % v: sc if np.isfinite(sc) else None
                                                 for v, sc in scores.items()}

@@ -55,6 +55,7 @@ def analyse(stage2, rows):
     import drjit as dr
     import mitsuba as mi
     from mi_invrgbl.eval.metrics import psnr
+    from mi_invrgbl.fit import shading_init
     from mi_invrgbl.fit.render import camera_unlit, frozen_gaussian_hits
     from mi_invrgbl.physics.fields import BY_NAME
     from mi_invrgbl.physics.lighting import environment_radiance
@@ -63,7 +64,8 @@ def analyse(stage2, rows):
     names = list(ctx.model.nodes)
     colour = np.concatenate([ctx.model.nodes[n].numpy("colour") for n in names]).astype(np.float64)
     albedo = np.concatenate([ctx.model.nodes[n].numpy("albedo") for n in names]).astype(np.float64)
-    clipped = (albedo >= 0.999).any(axis=1) | (albedo <= 0.0201).any(axis=1)
+    top, floor = shading_init.clipped_albedo(albedo)
+    clipped = top | floor
     spec_mean, _ = stage2.seen_by_cameras(names)
     vals = stage2.values()
     dark = dict(vals)
@@ -130,14 +132,13 @@ def analyse(stage2, rows):
             rgb, _, _ = camera_unlit(ctx.scene, f.camera.pixel_rays(idx), ctx.config.max_hits,
                                      ctx.config.min_transmittance)
             add("stage 1 traced", np.stack([np.array(rgb[c], np.float64) for c in range(3)], axis=1), f)
-    albedo_seen = albedo[spec_mean.any(axis=1)]
+    seen = spec_mean.any(axis=1)   # (the training views send them light)
     rows["frames"] = [f.index for f in frames]
     rows["psnr"] = {k: float(np.mean(v)) for k, v in acc.items()}
     rows["clipped_share_of_gaussians"] = float(np.mean(clipped))
-    rows["clipped_share_of_seen_gaussians"] = float(np.mean(
-        (albedo_seen >= 0.999).any(axis=1) | (albedo_seen <= 0.0201).any(axis=1))) if len(albedo_seen) else 0.0
-    rows["clipped_at_one"] = float(np.mean((albedo >= 0.999).any(axis=1)))
-    rows["clipped_at_floor"] = float(np.mean((albedo <= 0.0201).any(axis=1)))
+    rows["clipped_share_of_seen_gaussians"] = float(np.mean(clipped[seen])) if seen.any() else 0.0
+    rows["clipped_at_one"] = float(np.mean(top))
+    rows["clipped_at_floor"] = float(np.mean(floor))
     rows["clipped_weight_per_pixel"] = float(np.mean(share["clipped_weight"]))
     rows["sky_weight_per_pixel"] = float(np.mean(share["sky_weight"]))
 
