@@ -177,3 +177,143 @@ def test_switching_the_sun_off_and_on_keeps_the_sky_and_retraces_the_sun():
     GaussianLighting(scene, nodes, 8, cache, bounces=1)
     assert cache.sky_visibility is sky
     np.testing.assert_allclose(np.array(cache.light_visibility[0]), lit, atol=1e-5)
+
+
+# ------------------------------------------------------------------ moved nodes
+def roof_over_ground(samples=16):
+    """A ground layer and a small roof (another node) 0.3 m above it, at x = -0.8."""
+    from test_invrgbl import camera, layer, sky
+    ground, _ = layer(extent=2.0, spacing=0.1)
+    roof, _ = layer(extent=0.2, spacing=0.08, shape_id="roof", albedo=(0.2, 0.3, 0.8))
+    roof["to_world"] = mi.ScalarTransform4f().translate([-0.8, 0.0, 0.3])
+    return {"type": "scene",
+            "integrator": {"type": "invrgbl", "samples": samples, "bounces": 1},
+            "ground": ground, "roof": roof, "sky": sky(sun_direction=[0.3, -0.2, 1.0]),
+            "sensor": camera([0.0, -3.0, 2.0], [0, 0, 0], size=32)}
+
+
+def move_roof(scene, x):
+    from mi_invrgbl.scene.posing import place
+    to = np.eye(4)
+    to[:3, 3] = [x, 0.0, 0.3]
+    loaded = np.eye(4)
+    loaded[:3, 3] = [-0.8, 0.0, 0.3]
+    place(scene, {"roof": to}, {"roof": loaded})
+
+
+def mean_visibility(cache, M):
+    return np.array(cache.sky_visibility, np.float64).reshape(-1, M).mean(axis=1)
+
+
+def test_a_moved_node_retraces_only_the_rays_it_can_change():
+    M = 16
+    scene = mi.load_dict(roof_over_ground(M))
+    cache = LightingCache()
+    built = GaussianLighting(scene, hitlib.gaussian_nodes(scene), M, cache, bounces=1)
+    total = sum(n.count for n in hitlib.gaussian_nodes(scene))
+    assert built.retraced == total
+    before = np.array(cache.sky_visibility)
+    first = bounce_triples(cache)
+    move_roof(scene, 0.8)
+    nodes = hitlib.gaussian_nodes(scene)
+    roof = next(n for n in nodes if n.id != nodes[0].id and n.count < nodes[0].count)
+    patched = GaussianLighting(scene, nodes, M, cache, bounces=1)
+    # The roof's own Gaussians and the ground under its old and new place,
+    # not the whole ground.
+    assert roof.count < patched.retraced < 0.5 * total
+    full = LightingCache()
+    GaussianLighting(scene, nodes, M, full, bounces=1)
+    new, ref, old = mean_visibility(cache, M), mean_visibility(full, M), before.reshape(-1, M).mean(1)
+    # The move changes the sky of many ground Gaussians (uncovered at the
+    # old place, covered at the new one)...
+    ground = slice(0, nodes[0].count)
+    changed = np.abs(ref[ground] - old[ground]) > 0.05
+    assert changed.sum() > 40
+    assert (ref[ground] - old[ground] > 0.05).sum() > 20 and (ref[ground] - old[ground] < -0.05).sum() > 20
+    # ...and the patched cache follows a fresh trace wherever it changed (up
+    # to the intersector's batch dependence, see above).
+    diff = np.abs(new - ref)
+    assert np.mean(diff < 1e-3) > 0.97 and diff.max() < 0.1
+    assert np.all(diff[ground][changed] < 0.05)
+    # Rays that were not traced again kept their values exactly.
+    kept = np.abs(np.array(cache.sky_visibility) - before) == 0
+    assert kept.mean() > 0.3
+    # The bounce matrix: per receiving Gaussian as much weight as a fresh trace.
+    a, b = bounce_triples(cache), bounce_triples(full)
+    wa = np.bincount(a[:, 0].astype(int), a[:, 2], minlength=total)
+    wb = np.bincount(b[:, 0].astype(int), b[:, 2], minlength=total)
+    assert np.mean(np.abs(wa - wb) < 1e-3) > 0.95 and np.abs(wa - wb).max() < 0.1
+    assert not np.array_equal(a, first)
+
+
+def test_a_render_after_moving_a_node_matches_a_fresh_load():
+    scene = mi.load_dict(roof_over_ground())
+    mi.render(scene, spp=1, seed=0)
+    move_roof(scene, 0.5)
+    after = np.array(mi.render(scene, spp=1, seed=0))
+    fresh = mi.load_dict(roof_over_ground())
+    move_roof(fresh, 0.5)
+    reference = np.array(mi.render(fresh, spp=1, seed=0))
+    assert np.all(np.isfinite(after))
+    err = np.abs(after - reference)[..., :3]
+    assert np.mean(err < 1e-3) > 0.98 and err.max() < 0.05
+
+
+def test_other_changes_trace_the_sky_afresh():
+    from mi_invrgbl.physics.lighting import cache_keys, moved_since, point_lights
+    scene = mi.load_dict(roof_over_ground(8))
+    nodes = hitlib.gaussian_nodes(scene)
+    cache = LightingCache()
+    GaussianLighting(scene, nodes, 8, cache)
+    lights = point_lights(scene)
+    key = lambda M=8, bounces=0, pattern=0: cache_keys(scene, nodes, lights, M, bounces,  # noqa: E731
+                                                        pattern)[0]
+    assert cache.key == key() and moved_since(cache, key(), nodes) is None   # nothing moved
+    move_roof(scene, 0.2)
+    nodes = hitlib.gaussian_nodes(scene)
+    moved = moved_since(cache, key(), nodes)
+    assert moved.nodes == [1] and moved.surfaces == []
+    # Another M, pattern or bounce setting: every ray is another ray.
+    for other in (key(M=16), key(bounces=1), key(pattern=1)):
+        assert moved_since(cache, other, nodes) is None
+    # The ground moved too: more than PATCH_LIMIT of the Gaussians.
+    params = mi.traverse(scene)
+    data = np.array(params["ground.data"])
+    data[2::10] += 0.01
+    params["ground.data"] = mi.Float(data)
+    params.update()
+    nodes = hitlib.gaussian_nodes(scene)
+    assert moved_since(cache, key(), nodes) is None
+    built = GaussianLighting(scene, nodes, 8, cache)
+    assert built.retraced == sum(n.count for n in nodes)
+
+
+def roof_mesh_over_ground():
+    """:func:`roof_over_ground` with the roof a mesh (an inserted object)."""
+    d = roof_over_ground()
+    d["roof"] = {"type": "cube", "id": "roof",
+                 "to_world": mi.ScalarTransform4f().translate([-0.8, 0.0, 0.45])
+                 @ mi.ScalarTransform4f().scale([0.25, 0.25, 0.05])}
+    return d
+
+
+def test_a_moved_mesh_shades_the_gaussians_as_a_fresh_load():
+    """An inserted mesh driving along its track: the Gaussians under its old
+    place get their sky (and sun) back, those under the new one lose it."""
+    scene = mi.load_dict(roof_mesh_over_ground())
+    nodes = hitlib.gaussian_nodes(scene)
+    first = np.array(mi.render(scene, spp=1, seed=0))
+    move_roof(scene, 0.8)
+    after = np.array(mi.render(scene, spp=1, seed=0))
+    fresh = mi.load_dict(roof_mesh_over_ground())
+    move_roof(fresh, 0.8)
+    reference = np.array(mi.render(fresh, spp=1, seed=0))
+    assert np.abs(reference - first)[..., :3].max() > 0.1      # the move shows
+    err = np.abs(after - reference)[..., :3]
+    assert np.mean(err < 1e-3) > 0.98 and err.max() < 0.05
+    # Only the ground under the mesh's old and new place was traced again.
+    cache = LightingCache()
+    GaussianLighting(scene, nodes, 16, cache)
+    move_roof(scene, 0.0)
+    built = GaussianLighting(scene, hitlib.gaussian_nodes(scene), 16, cache)
+    assert 0 < built.retraced < 0.5 * nodes[0].count

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 import drjit as dr
@@ -240,25 +241,6 @@ def split_transmittance(scene, origins, directions, maxt, nodes, moving_ids):
     return dr.select(h.surface_valid, 0.0, parts[0]), parts[1]
 
 
-#: A moving node's Gaussians reach this many of their largest scale past
-#: their centres when :func:`moving_shadows` decides which shadow rays can
-#: meet the node (the response is below 1.2e-2 of its peak beyond 3 sigma).
-MOVING_SUPPORT = 3.0
-
-
-def _moving_boxes(table, moving_ids):
-    """World-space bounds (lo, hi) of each moving node's Gaussians' support
-    (centre +- :data:`MOVING_SUPPORT` times its largest scale)."""
-    boxes = []
-    for node in table.nodes:
-        if node.id not in moving_ids or node.count == 0:
-            continue
-        data = np.array(dr.detach(node.data), np.float64).reshape(-1, 10)
-        reach = MOVING_SUPPORT * np.max(np.abs(data[:, 3:6]), axis=1, keepdims=True)
-        boxes.append((np.min(data[:, :3] - reach, axis=0), np.max(data[:, :3] + reach, axis=0)))
-    return boxes
-
-
 def moving_shadows(nodes, table, direction, moving_ids, return_rays=False):
     """Per Gaussian of the loaded ``table`` (G,): the transmittance of its
     shadow ray towards ``direction`` (a unit world vector, towards the light)
@@ -280,7 +262,8 @@ def moving_shadows(nodes, table, direction, moving_ids, return_rays=False):
     G = table.total
     ids = set(int(i) for i in moving_ids)
     out = np.ones(G, np.float32)
-    boxes = _moving_boxes(table, ids)
+    boxes = [box for node, box in zip(table.nodes, node_boxes(table.nodes))
+             if node.id in ids and box is not None]
     if G == 0 or not boxes:
         return (jit_array(mi.Float, out), 0) if return_rays else jit_array(mi.Float, out)
     d = np.asarray(direction, np.float64).ravel()
@@ -355,6 +338,12 @@ class LightingCache:
     #: M directions turn with its normal; visibility traced for the old ones
     #: is not the new ones' (:func:`retrace_turned`).
     normals: np.ndarray = None
+    #: Per node (the order of ``key``'s geometry), the world bounds (lo, hi)
+    #: its Gaussians had when the sky was traced: what :func:`retrace_moved`
+    #: tests the old rays against once the node has moved.
+    boxes: list = None
+    #: The same for the shapes that are not Gaussians (:func:`surfaces`).
+    surface_boxes: list = None
     #: What ``moving_visibility`` was traced for: geometry and sun directions.
     moving_key: tuple = ()
     #: Per light, the moving shapes' shadow factor on a learned sun
@@ -366,6 +355,56 @@ def geometry_key(nodes):
     """What traced visibility depends on of the nodes: their arrays' identities
     (a placement or an edit through ``mi.traverse`` makes new ones)."""
     return tuple((n.id, n.data.index, n.count) for n in nodes)
+
+
+def surfaces(scene) -> list:
+    """The scene's shapes that are not Gaussians (meshes, analytic shapes):
+    they block the Gaussians' sky and shadow rays too."""
+    return [shape for shape in scene.shapes() if not shape.is_ellipsoids()]
+
+
+def surface_key(scene):
+    """What traced visibility depends on of the shapes that are not
+    Gaussians: per shape its id and the identity of its vertex array (a
+    mesh) or its ``to_world`` (an analytic shape). Moving a mesh with
+    :func:`~mi_invrgbl.scene.posing.place` writes new vertices: an inserted
+    car driving along its track must shade the Gaussians under it anew on
+    every frame, and without this key the cache kept the shadows of the
+    first frame's placement (a roof moved 1.6 m over Gaussians left pixels
+    up to 0.48 off a fresh load's)."""
+    out = []
+    for shape in surfaces(scene):
+        params = mi.traverse(shape)
+        if "vertex_positions" in params:
+            ident = ("vertices", params["vertex_positions"].index)
+        elif "to_world" in params:
+            ident = tuple(np.array(params["to_world"].matrix, np.float64).ravel().round(7))
+        else:
+            box = shape.bbox()
+            ident = tuple(np.concatenate([np.array(box.min, np.float64).ravel(),
+                                          np.array(box.max, np.float64).ravel()]).round(7))
+        out.append((shape.id(), ident))
+    return tuple(out)
+
+
+class SkyKey(NamedTuple):
+    """What a cache's sky visibility (and bounce matrix) was traced for."""
+    geometry: tuple     #: :func:`geometry_key` of the Gaussian nodes
+    surfaces: tuple     #: :func:`surface_key` of the other shapes
+    samples: int        #: M
+    bounces: bool       #: whether the bounce matrix was recorded
+    pattern: int        #: the directions' turn (:func:`hash_rotation_of`)
+
+
+def cache_keys(scene, nodes, lights, samples, bounces=0, pattern=0, trace_sun=True):
+    """``(sky key, light key)``: what a :class:`LightingCache` must have been
+    traced for to be reused for these nodes, lights and settings (the one
+    place both keys are made)."""
+    with dr.suspend_grad():
+        geometry, others = geometry_key(nodes), surface_key(scene)
+        sky = SkyKey(geometry, others, int(samples), bool(bounces > 0), int(pattern))
+        light = (geometry, others, _light_key(scene, lights, trace_sun), trace_sun)
+    return sky, light
 
 
 def _light_key(scene, lights, trace_sun=True):
@@ -412,6 +451,173 @@ def trace_sky(scene, nodes, table, samples, pattern=0, bounces=0, gaussians=None
         return vis, dr.gather(mi.UInt32, g, ray), source, w / M
 
 
+def _replace_rows(cache: LightingCache, gaussians, M, new_vis, target, source, weight, normals):
+    """Put the sky rays of ``gaussians`` (global indices, numpy uint32), just
+    traced by :func:`trace_sky`, into ``cache``: their ``M`` entries of
+    ``sky_visibility``, their rows of the bounce matrix (the other rows are
+    kept) and their unit ``normals`` (the (G, 3) array they were traced
+    about). The lights' shadow rays are traced again on the next build."""
+    if cache.bounce_target is not None or target is not None:
+        # Keep the other Gaussians' rows of W; these get their new rows.
+        parts = []
+        if cache.bounce_target is not None:
+            old = [np.array(a) for a in (cache.bounce_target, cache.bounce_source,
+                                         cache.bounce_weight)]
+            keep = ~np.isin(old[0], gaussians)
+            parts.append([a[keep] for a in old])
+        if target is not None:
+            parts.append([np.array(a) for a in (target, source, weight)])
+        t, src, w = (np.concatenate(col) for col in zip(*parts))
+        cache.bounce_target = jit_array(mi.UInt32, t)
+        cache.bounce_source = jit_array(mi.UInt32, src)
+        cache.bounce_weight = jit_array(mi.Float, w)
+        dr.eval(cache.bounce_target, cache.bounce_source, cache.bounce_weight)
+    # A new array rather than a scatter into the cached one: lighting built
+    # before this call may still read the old one. It is handed over padded
+    # (:mod:`.host_arrays`): a NumPy buffer that ends at an unmapped page
+    # crashes the next kernel that reads it, the likelier cause of the
+    # SIGSEGVs once blamed on the scatter.
+    slots = (gaussians.astype(np.int64)[:, None] * M + np.arange(M)).ravel()
+    vis = np.array(cache.sky_visibility, np.float32)
+    vis[slots] = np.array(new_vis, np.float32)
+    cache.sky_visibility = jit_array(mi.Float, vis)
+    dr.eval(cache.sky_visibility)
+    cache.normals[gaussians] = normals[gaussians]
+    # The lights' shadow rays leave along the normals too (shadow_origins):
+    # trace them again on the next build (one ray per Gaussian and light).
+    cache.light_key = None
+
+
+#: A sky cache whose nodes moved is patched (:func:`retrace_moved`) while
+#: the moved nodes hold at most this share of the Gaussians; past it the
+#: static rays that meet them cost about what a fresh trace does.
+PATCH_LIMIT = 0.5
+
+
+def shape_boxes(shapes) -> list:
+    """Per shape, its world bounds ``(lo, hi)`` (float64 numpy): the shape's
+    own bounding box, the one the ray tracer's hierarchy is built from (for
+    Gaussians, their traversal support); ``None`` for an empty shape."""
+    out = []
+    for shape in shapes:
+        box = shape.bbox()
+        lo = np.array(box.min, np.float64).ravel()
+        hi = np.array(box.max, np.float64).ravel()
+        ok = np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(hi >= lo)
+        out.append((lo, hi) if ok else None)
+    return out
+
+
+def node_boxes(nodes) -> list:
+    """:func:`shape_boxes` of the nodes' shapes; ``None`` for an empty node
+    and for one whose arrays are not its shape's (the fit's virtual nodes,
+    ``shape`` None: their bounds are unknown)."""
+    return [None if node.count == 0 or node.shape is None else shape_boxes([node.shape])[0]
+            for node in nodes]
+
+
+class Moved(NamedTuple):
+    """What moved since a cache traced the sky (:func:`moved_since`)."""
+    nodes: list         #: positions in the Gaussian nodes
+    surfaces: list      #: positions in :func:`surfaces`
+
+
+def moved_since(cache: LightingCache, sky_key: SkyKey, nodes):
+    """What changed since ``cache`` traced the sky, where
+    :func:`retrace_moved` gives what a fresh trace would: the same settings
+    (M, bounces, pattern), the same nodes with the same counts and the same
+    other shapes, a few of them placed anew or edited (new arrays,
+    :func:`geometry_key`, :func:`surface_key`), the moved nodes holding at
+    most :data:`PATCH_LIMIT` of the Gaussians. ``None`` where the sky must
+    be traced afresh (or nothing changed)."""
+    old = cache.key
+    if not isinstance(old, SkyKey) or cache.sky_visibility is None or cache.normals is None \
+            or cache.boxes is None or cache.surface_boxes is None \
+            or len(cache.boxes) != len(nodes) or old == sky_key:
+        return None
+    if (old.samples, old.bounces, old.pattern) != (sky_key.samples, sky_key.bounces,
+                                                   sky_key.pattern) \
+            or len(old.geometry) != len(sky_key.geometry) \
+            or len(old.surfaces) != len(sky_key.surfaces) \
+            or len(cache.surface_boxes) != len(sky_key.surfaces):
+        return None
+    moved = Moved([], [])
+    for k, (a, b) in enumerate(zip(old.geometry, sky_key.geometry)):
+        if a[0] != b[0] or a[2] != b[2]:
+            return None     # another node, or Gaussians added or removed
+        if a[1] != b[1]:
+            if nodes[k].count and (nodes[k].shape is None or cache.boxes[k] is None):
+                return None     # bounds unknown (a virtual node): nothing to test rays against
+            moved.nodes.append(k)
+    for k, (a, b) in enumerate(zip(old.surfaces, sky_key.surfaces)):
+        if a[0] != b[0]:
+            return None     # another shape
+        if a[1] != b[1]:
+            moved.surfaces.append(k)
+    total = sum(n.count for n in nodes)
+    if sum(nodes[k].count for k in moved.nodes) > PATCH_LIMIT * total:
+        return None
+    return moved
+
+
+def retrace_moved(scene, nodes, cache: LightingCache, table, samples, pattern, bounces,
+                  moved: Moved) -> int:
+    """Re-trace the sky rays that what ``moved`` (from :func:`moved_since`)
+    can have changed, into ``cache``; returns how many Gaussians were traced.
+
+    Those are every ray of the moved nodes' own Gaussians (they moved, and
+    their directions with them), and every other Gaussian's rays that meet
+    a moved node's or shape's bounds as they were when the cache traced
+    them or as they are now. Any other ray meets the same Gaussians and
+    meshes as before, so its
+    visibility and its bounce entries are what a fresh trace gives: eval
+    and every frame of a rendered sequence place the moving objects anew,
+    and a fresh trace of the whole sky (G x M rays) took 17 of the 27 s a
+    KITTI frame took to score. ``table``: loaded (:meth:`GaussianTable.load_geometry`)."""
+    M = int(samples)
+    now = unit_normals(table)
+    mine = np.zeros(table.total, bool)
+    boxes = []
+    new_boxes = node_boxes(nodes)
+    new_surface_boxes = shape_boxes(surfaces(scene))
+    for k in moved.nodes:
+        off = table.offsets[k]
+        mine[off:off + nodes[k].count] = True
+        boxes += [b for b in (cache.boxes[k], new_boxes[k]) if b is not None]
+    for k in moved.surfaces:
+        boxes += [b for b in (cache.surface_boxes[k], new_surface_boxes[k]) if b is not None]
+    others = np.flatnonzero(~mine).astype(np.uint32)
+    meet = np.zeros(others.size, bool)
+    if others.size and boxes:
+        with dr.suspend_grad():
+            # The rays exactly as trace_sky traced them: from the centres
+            # (unmoved), about the normals the cache holds.
+            idx = jit_array(mi.UInt32, others)
+            j = dr.arange(mi.UInt32, others.size * M)
+            g = dr.gather(mi.UInt32, idx, j // M)
+            local = fibonacci_direction(mi.Float(j % M), M, hash_rotation_of(g, pattern))
+            normals = jit_array(mi.Float, cache.normals.ravel())
+            n = mi.Vector3f(*[dr.gather(mi.Float, normals, g * 3 + c) for c in range(3)])
+            rays = mi.Ray3f(dr.gather(mi.Point3f, dr.detach(table.center), g),
+                            mi.Frame3f(n).to_world(local))
+            hit = mi.Bool(False)
+            for lo, hi in boxes:
+                # Padded a little: a ray grazing the box in float32 is traced.
+                pad = 1e-4 * (1.0 + np.abs(lo) + np.abs(hi)) + 1e-4 * (hi - lo)
+                box = mi.BoundingBox3f(mi.Point3f(*[float(v) for v in lo - pad]),
+                                       mi.Point3f(*[float(v) for v in hi + pad]))
+                ok, _, far = box.ray_intersect(rays)
+                hit |= ok & (far >= 0.0)
+            meet = np.array(hit, bool).reshape(-1, M).any(axis=1)
+    gaussians = np.union1d(np.flatnonzero(mine), others[meet]).astype(np.uint32)
+    if gaussians.size:
+        new_vis, target, source, weight = trace_sky(scene, nodes, table, M, pattern, bounces,
+                                                    gaussians)
+        _replace_rows(cache, gaussians, M, new_vis, target, source, weight, now)
+    cache.boxes, cache.surface_boxes = new_boxes, new_surface_boxes
+    return int(gaussians.size)
+
+
 def retrace_turned(scene, nodes, cache: LightingCache, samples, pattern=0, bounces=0,
                    max_turn_deg=1.0, table=None) -> int:
     """Re-trace the sky visibility (and bounce entries) of the Gaussians whose
@@ -443,36 +649,7 @@ def retrace_turned(scene, nodes, cache: LightingCache, samples, pattern=0, bounc
     if turned.size == 0:
         return 0
     new_vis, target, source, weight = trace_sky(scene, nodes, table, M, pattern, bounces, turned)
-    if bounces > 0:
-        # Keep the other Gaussians' rows of W; the turned ones get their new rows.
-        parts = []
-        if cache.bounce_target is not None:
-            old = [np.array(a) for a in (cache.bounce_target, cache.bounce_source,
-                                         cache.bounce_weight)]
-            keep = ~np.isin(old[0], turned)
-            parts.append([a[keep] for a in old])
-        if target is not None:
-            parts.append([np.array(a) for a in (target, source, weight)])
-        if parts:
-            t, src, w = (np.concatenate(col) for col in zip(*parts))
-            cache.bounce_target = jit_array(mi.UInt32, t)
-            cache.bounce_source = jit_array(mi.UInt32, src)
-            cache.bounce_weight = jit_array(mi.Float, w)
-            dr.eval(cache.bounce_target, cache.bounce_source, cache.bounce_weight)
-    # A new array rather than a scatter into the cached one: lighting built
-    # before this call may still read the old one. It is handed over padded
-    # (:mod:`.host_arrays`): a NumPy buffer that ends at an unmapped page
-    # crashes the next kernel that reads it, the likelier cause of the
-    # SIGSEGVs once blamed on the scatter.
-    slots = (turned.astype(np.int64)[:, None] * M + np.arange(M)).ravel()
-    vis = np.array(cache.sky_visibility, np.float32)
-    vis[slots] = np.array(new_vis, np.float32)
-    cache.sky_visibility = jit_array(mi.Float, vis)
-    dr.eval(cache.sky_visibility)
-    cache.normals[turned] = now[turned]
-    # The lights' shadow rays leave along the normals too (shadow_origins):
-    # trace them again on the next build (one ray per Gaussian and light).
-    cache.light_key = None
+    _replace_rows(cache, turned, M, new_vis, target, source, weight, now)
     return int(turned.size)
 
 
@@ -511,13 +688,13 @@ class GaussianLighting:
         self.samples = int(samples)
         self.bounces = int(bounces)
         self.pattern = int(pattern)
+        #: Gaussians whose sky rays this build traced (0: the cache's were reused).
+        self.retraced = 0
         self.lights = point_lights(scene)
         if self.table.total == 0:
             return
-        with dr.suspend_grad():
-            geometry = geometry_key(nodes)
-            sky_key = (geometry, self.samples, self.bounces > 0, self.pattern)
-            light_key = (geometry, _light_key(scene, self.lights, trace_sun), trace_sun)
+        sky_key, light_key = cache_keys(scene, nodes, self.lights, self.samples, self.bounces,
+                                        self.pattern, trace_sun)
         table = self.table.load_geometry()
         M, G = self.samples, self.table.total
         frames = mi.Frame3f(dr.gather(mi.Vector3f, table.normal,
@@ -527,7 +704,18 @@ class GaussianLighting:
         if cache.key != sky_key or cache.light_key != light_key:
             if before_trace is not None:
                 before_trace()
-        if cache.key != sky_key:
+        # Only where nothing places the scene before a trace (the fit keys
+        # its cache to one frame's placement; eval and rendered sequences
+        # place the objects themselves, frame by frame).
+        moved = moved_since(cache, sky_key, nodes) if before_trace is None and M else None
+        if moved is not None:
+            self.retraced = retrace_moved(scene, nodes, cache, table, M, self.pattern,
+                                          self.bounces, moved)
+            cache.key = sky_key
+            if follow_normals:
+                retrace_turned(scene, nodes, cache, M, pattern, self.bounces, max_turn_deg=0.0,
+                               table=table)
+        elif cache.key != sky_key:
             with dr.suspend_grad():
                 cache.bounce_target = cache.bounce_source = cache.bounce_weight = None
                 if M:
@@ -540,7 +728,10 @@ class GaussianLighting:
                     cache.sky_visibility = mi.Float()
                 dr.eval(cache.sky_visibility)
                 cache.normals = unit_normals(table)
+                cache.boxes = node_boxes(nodes)
+                cache.surface_boxes = shape_boxes(surfaces(scene))
                 cache.key = sky_key
+                self.retraced = G
         elif follow_normals and M:
             retrace_turned(scene, nodes, cache, M, pattern, self.bounces, max_turn_deg=0.0, table=table)
         if cache.light_key != light_key:

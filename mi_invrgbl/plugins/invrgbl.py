@@ -102,7 +102,12 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
     normal, so a render after normals were edited (``mi.traverse``)
     re-traces the sky directions of the Gaussians whose normal changed
     (:func:`~mi_invrgbl.physics.lighting.retrace_turned`) and renders as a
-    fresh load of the edited scene would.
+    fresh load of the edited scene would. Moving a node or a mesh (a frame's
+    objects placed, an inserted car on its track) re-traces the moved
+    Gaussians' sky directions and the others' that meet the moved shape's
+    bounds, before or after the move
+    (:func:`~mi_invrgbl.physics.lighting.retrace_moved`); where the moved
+    nodes hold more than half of the Gaussians, the whole sky.
 
     A mesh behind the Gaussians (or alone) is shaded with its own BSDF (any
     Mitsuba BSDF) by direct lighting: one emitter sample and one BSDF sample

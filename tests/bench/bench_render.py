@@ -253,13 +253,13 @@ def fill_lighting_cache(scene, integrator):
     lights = L.point_lights(scene)
     G = sum(node.count for node in nodes)
     trace_sun = integrator.sun_visibility == "trace"
-    with dr.suspend_grad():
-        key = (L.geometry_key(nodes), L._light_key(scene, lights), integrator.samples, trace_sun)
+    sky_key, light_key = L.cache_keys(scene, nodes, lights, integrator.samples,
+                                      integrator.bounces, 0, trace_sun)
     cache = integrator.cache
     cache.sky_visibility = dr.ones(mi.Float, G * integrator.samples)
     cache.light_visibility = [dr.ones(mi.Float, G) for _ in lights]
     dr.eval(cache.sky_visibility, cache.light_visibility)
-    cache.key = key
+    cache.key, cache.light_key = sky_key, light_key
 
 
 def count_hits(scene, rays, max_hits, min_transmittance=1e-3):
