@@ -317,3 +317,25 @@ def test_a_moved_mesh_shades_the_gaussians_as_a_fresh_load():
     move_roof(scene, 0.0)
     built = GaussianLighting(scene, hitlib.gaussian_nodes(scene), 16, cache)
     assert 0 < built.retraced < 0.5 * nodes[0].count
+
+
+def test_a_sky_copy_serves_another_integrator_without_a_trace():
+    """``eval`` relights with a second integrator (traced sun) that starts
+    from the scoring pass's sky: nothing is traced again, the lights are."""
+    scene = mi.load_dict(roof_over_ground(8))
+    nodes = hitlib.gaussian_nodes(scene)
+    cache = LightingCache()
+    GaussianLighting(scene, nodes, 8, cache, bounces=1, trace_sun=False)
+    copy = cache.sky_copy()
+    assert copy.light_key == () and copy.light_visibility == []
+    built = GaussianLighting(scene, nodes, 8, copy, bounces=1, trace_sun=True)
+    assert built.retraced == 0 and len(copy.light_visibility) == 1
+    np.testing.assert_array_equal(np.array(copy.sky_visibility), np.array(cache.sky_visibility))
+    # A move patches the copy; the original keeps its own normals and sky.
+    before = np.array(cache.sky_visibility)
+    normals = cache.normals.copy()
+    move_roof(scene, 0.5)
+    patched = GaussianLighting(scene, hitlib.gaussian_nodes(scene), 8, copy, bounces=1)
+    assert 0 < patched.retraced < sum(n.count for n in nodes)
+    np.testing.assert_array_equal(np.array(cache.sky_visibility), before)
+    np.testing.assert_array_equal(cache.normals, normals)

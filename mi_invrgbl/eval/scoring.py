@@ -338,8 +338,14 @@ def evaluate(scene_path, frames_spec="held-out", spp=EVAL_SPP, samples=None, lid
     raw = raw_point_pass(scene, frames, positions, rows, lidar_integ, lookup, log)
     if sky is not None:
         # A moved sun needs traced sun visibility, not the fitted per-Gaussian field.
+        relight_integ = integrator_like(scene, samples, "trace")
+        scored_with = cam_integ if cam_integ is not None else scene.integrator()
+        if hasattr(relight_integ, "cache") and hasattr(scored_with, "cache"):
+            # The same sky (M, bounces): start from the scoring pass's, as
+            # its last frame left it, rather than tracing it afresh.
+            relight_integ.cache = scored_with.cache.sky_copy()
         relight_pass(scene, frames, positions, rows, sky, lights["time_b"], gt_dir, R, spp,
-                     integrator_like(scene, samples, "trace"), log)
+                     relight_integ, log)
 
     lighting = sun_metrics(sky, lights, R) if sky is not None else None
     if lighting:

@@ -350,6 +350,22 @@ class LightingCache:
     #: visibility (:func:`moving_shadows`; None for other lights).
     moving_visibility: list = field(default_factory=list)
 
+    def sky_copy(self) -> "LightingCache":
+        """A cache holding this one's sky visibility and bounce matrix (and
+        what they were traced for), not its lights': another integrator
+        with the same M, bounces and pattern, under other lights or another
+        sun-visibility mode, starts from it instead of tracing the sky
+        afresh (``eval``'s relighting after its scoring pass). The arrays
+        are shared, never written in place, but the normals, which a
+        re-trace updates in place, are copied."""
+        return LightingCache(key=self.key, sky_visibility=self.sky_visibility,
+                             bounce_target=self.bounce_target, bounce_source=self.bounce_source,
+                             bounce_weight=self.bounce_weight,
+                             normals=None if self.normals is None else self.normals.copy(),
+                             boxes=None if self.boxes is None else list(self.boxes),
+                             surface_boxes=None if self.surface_boxes is None
+                             else list(self.surface_boxes))
+
 
 def geometry_key(nodes):
     """What traced visibility depends on of the nodes: their arrays' identities
