@@ -339,3 +339,29 @@ def test_a_sky_copy_serves_another_integrator_without_a_trace():
     assert 0 < patched.retraced < sum(n.count for n in nodes)
     np.testing.assert_array_equal(np.array(cache.sky_visibility), before)
     np.testing.assert_array_equal(cache.normals, normals)
+
+
+def test_nodes_whose_bounds_are_unknown_are_traced_afresh():
+    """The fit's virtual nodes carry arrays that are not their shape's
+    (``shape`` None): a move of one cannot be patched. An empty node has
+    no bounds and moves nothing."""
+    from types import SimpleNamespace
+    from mi_invrgbl.physics.lighting import (cache_keys, moved_since, node_boxes, point_lights,
+                                             shape_boxes)
+    scene = mi.load_dict(roof_over_ground(8))
+    nodes = hitlib.gaussian_nodes(scene)
+    cache = LightingCache()
+    GaussianLighting(scene, nodes, 8, cache)
+    move_roof(scene, 0.3)
+    moved = hitlib.gaussian_nodes(scene)
+    key = cache_keys(scene, moved, point_lights(scene), 8)[0]
+    assert moved_since(cache, key, moved).nodes == [1]
+    virtual = [moved[0], SimpleNamespace(id=moved[1].id, data=moved[1].data,
+                                         count=moved[1].count, shape=None)]
+    assert node_boxes(virtual)[1] is None
+    assert moved_since(cache, key, virtual) is None
+    empty = SimpleNamespace(id=7, data=mi.Float(), count=0, shape=None)
+    assert node_boxes([empty]) == [None]
+    # A shape whose box is not finite gives no bounds either.
+    bad = SimpleNamespace(bbox=lambda: SimpleNamespace(min=[np.nan, 0, 0], max=[1, 1, 1]))
+    assert shape_boxes([bad]) == [None]
