@@ -241,6 +241,24 @@ def split_transmittance(scene, origins, directions, maxt, nodes, moving_ids):
     return dr.select(h.surface_valid, 0.0, parts[0]), parts[1]
 
 
+def rays_meeting(origins, directions, boxes) -> np.ndarray:
+    """Per ray (Dr.Jit ``origins``, ``directions``), whether it meets one of
+    ``boxes`` (world ``(lo, hi)``, numpy) ahead of its origin: the rays a
+    moved shape can have changed. Each box is padded a little, so that a ray
+    grazing it in float32 counts (a ray along an axis, level with a face,
+    included)."""
+    hit = mi.Bool(False)
+    with dr.suspend_grad():
+        rays = mi.Ray3f(origins, directions)
+        for lo, hi in boxes:
+            pad = 1e-4 * (1.0 + np.abs(lo) + np.abs(hi)) + 1e-4 * (hi - lo)
+            box = mi.BoundingBox3f(mi.Point3f(*[float(v) for v in lo - pad]),
+                                   mi.Point3f(*[float(v) for v in hi + pad]))
+            ok, _, far = box.ray_intersect(rays)
+            hit |= ok & (far >= 0.0)
+    return np.array(hit, bool).reshape(-1) if boxes else np.zeros(dr.width(origins), bool)
+
+
 def moving_shadows(nodes, table, direction, moving_ids, return_rays=False):
     """Per Gaussian of the loaded ``table`` (G,): the transmittance of its
     shadow ray towards ``direction`` (a unit world vector, towards the light)
@@ -269,18 +287,10 @@ def moving_shadows(nodes, table, direction, moving_ids, return_rays=False):
     d = np.asarray(direction, np.float64).ravel()
     d = d / np.linalg.norm(d)
     node_id = np.array(table.ids, np.uint32)
-    origin = np.array(shadow_origins(table, dr.zeros(mi.Vector3f, G) + mi.Vector3f(
-        *[float(x) for x in d])), np.float64).T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = np.where(np.abs(d) > 1e-12, 1.0 / d, np.inf)
-    candidate = np.zeros(G, bool)
-    for lo, hi in boxes:
-        # Slab test of the ray origin + t d, t >= 0, against the box.
-        t0, t1 = (lo - origin) * inv, (hi - origin) * inv
-        near = np.nanmax(np.minimum(t0, t1), axis=1)
-        far = np.nanmin(np.maximum(t0, t1), axis=1)
-        candidate |= (far >= np.maximum(near, 0.0))
-    candidate &= ~np.isin(node_id, list(ids))
+    towards = dr.zeros(mi.Vector3f, G) + mi.Vector3f(*[float(x) for x in d])
+    origins = shadow_origins(table, towards)
+    origin = np.array(origins, np.float64).T
+    candidate = rays_meeting(origins, towards, boxes) & ~np.isin(node_id, list(ids))
     rows = np.flatnonzero(candidate)
     if rows.size:
         o = mi.Point3f(*origin[rows].T.astype(np.float32))
@@ -440,6 +450,27 @@ def unit_normals(table) -> np.ndarray:
     return np.array(dr.detach(table.normal), np.float32).T.copy()
 
 
+def sky_rays(table, samples, pattern=0, gaussians=None, normals=None):
+    """The M sky rays of ``gaussians`` (global indices, numpy; default every
+    Gaussian of the loaded ``table``), Gaussian-major: ``(Gaussian of each
+    ray, origins, directions)``. Cosine-weighted about each one's normal
+    (``normals``, a (G, 3) numpy array, or the table's) and turned by its
+    :func:`hash_rotation_of`, from its centre. The one definition of the
+    rays the sky's visibility is traced along."""
+    M = int(samples)
+    with dr.suspend_grad():
+        idx = dr.arange(mi.UInt32, table.total) if gaussians is None else jit_array(mi.UInt32, gaussians)
+        j = dr.arange(mi.UInt32, dr.width(idx) * M)
+        g = dr.gather(mi.UInt32, idx, j // M)
+        local = fibonacci_direction(mi.Float(j % M), M, hash_rotation_of(g, pattern))
+        if normals is None:
+            n = dr.gather(mi.Vector3f, dr.detach(table.normal), g)
+        else:
+            flat = jit_array(mi.Float, np.ascontiguousarray(normals, np.float32).ravel())
+            n = mi.Vector3f(*[dr.gather(mi.Float, flat, g * 3 + c) for c in range(3)])
+        return g, dr.gather(mi.Point3f, dr.detach(table.center), g), mi.Frame3f(n).to_world(local)
+
+
 def trace_sky(scene, nodes, table, samples, pattern=0, bounces=0, gaussians=None):
     """Trace the M sky directions of ``gaussians`` (global indices, numpy;
     default every Gaussian of the loaded ``table``), cosine-weighted about
@@ -453,12 +484,7 @@ def trace_sky(scene, nodes, table, samples, pattern=0, bounces=0, gaussians=None
     trace of a cache and :func:`retrace_turned` share it."""
     M = int(samples)
     with dr.suspend_grad():
-        idx = dr.arange(mi.UInt32, table.total) if gaussians is None else jit_array(mi.UInt32, gaussians)
-        j = dr.arange(mi.UInt32, dr.width(idx) * M)
-        g = dr.gather(mi.UInt32, idx, j // M)
-        local = fibonacci_direction(mi.Float(j % M), M, hash_rotation_of(g, pattern))
-        dirs = mi.Frame3f(dr.gather(mi.Vector3f, dr.detach(table.normal), g)).to_world(local)
-        origins = dr.gather(mi.Point3f, dr.detach(table.center), g)
+        g, origins, dirs = sky_rays(table, M, pattern, gaussians)
         if bounces <= 0:
             return transmittance(scene, origins, dirs, mi.Float(dr.inf), nodes), None, None, None
         vis, ray, source, w = shadow_blockers(scene, origins, dirs, mi.Float(dr.inf), nodes, table)
@@ -607,26 +633,10 @@ def retrace_moved(scene, nodes, cache: LightingCache, table, samples, pattern, b
     others = np.flatnonzero(~mine).astype(np.uint32)
     meet = np.zeros(others.size, bool)
     if others.size and boxes:
-        with dr.suspend_grad():
-            # The rays exactly as trace_sky traced them: from the centres
-            # (unmoved), about the normals the cache holds.
-            idx = jit_array(mi.UInt32, others)
-            j = dr.arange(mi.UInt32, others.size * M)
-            g = dr.gather(mi.UInt32, idx, j // M)
-            local = fibonacci_direction(mi.Float(j % M), M, hash_rotation_of(g, pattern))
-            normals = jit_array(mi.Float, cache.normals.ravel())
-            n = mi.Vector3f(*[dr.gather(mi.Float, normals, g * 3 + c) for c in range(3)])
-            rays = mi.Ray3f(dr.gather(mi.Point3f, dr.detach(table.center), g),
-                            mi.Frame3f(n).to_world(local))
-            hit = mi.Bool(False)
-            for lo, hi in boxes:
-                # Padded a little: a ray grazing the box in float32 is traced.
-                pad = 1e-4 * (1.0 + np.abs(lo) + np.abs(hi)) + 1e-4 * (hi - lo)
-                box = mi.BoundingBox3f(mi.Point3f(*[float(v) for v in lo - pad]),
-                                       mi.Point3f(*[float(v) for v in hi + pad]))
-                ok, _, far = box.ray_intersect(rays)
-                hit |= ok & (far >= 0.0)
-            meet = np.array(hit, bool).reshape(-1, M).any(axis=1)
+        # The rays as the cache traced them: from the centres (unmoved),
+        # about the normals it holds.
+        _, origins, dirs = sky_rays(table, M, pattern, others, cache.normals)
+        meet = rays_meeting(origins, dirs, boxes).reshape(-1, M).any(axis=1)
     gaussians = np.union1d(np.flatnonzero(mine), others[meet]).astype(np.uint32)
     if gaussians.size:
         new_vis, target, source, weight = trace_sky(scene, nodes, table, M, pattern, bounces,
