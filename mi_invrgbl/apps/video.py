@@ -15,6 +15,8 @@ import os
 
 import numpy as np
 
+from ..physics.colour import linear_to_srgb
+
 #: Frames per second of the animations (KITTI records at 10 Hz).
 DEFAULT_FPS = 10.0
 #: Longest side of GIF frames: GIFs of wide street images grow large fast.
@@ -24,7 +26,7 @@ GIF_MAX_SIDE = 640
 def to_srgb8(linear_rgb: np.ndarray, exposure: float = 1.0) -> np.ndarray:
     """Linear RGB (H, W, 3) to 8-bit sRGB, as :func:`mi_invrgbl.io.images.write_png` does."""
     img = np.clip(np.nan_to_num(np.asarray(linear_rgb, np.float32) * exposure), 0.0, 1.0)
-    srgb = np.where(img <= 0.0031308, img * 12.92, 1.055 * np.power(img, 1 / 2.4) - 0.055)
+    srgb = linear_to_srgb(img)
     return (srgb * 255 + 0.5).astype(np.uint8)
 
 

@@ -37,7 +37,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..eval.metrics import SRGB_A, SRGB_GAMMA, SRGB_KNEE, SRGB_SLOPE
+from ..physics.colour import SRGB_A, SRGB_GAMMA, SRGB_KNEE, SRGB_SLOPE
 from ..physics.host_arrays import jit_array
 
 #: Default bandwidth of the bilateral weight of L_rgb->lidar. The paper leaves

@@ -36,7 +36,7 @@ from __future__ import annotations
 import numpy as np
 import cv2
 
-from ..physics.colour import LUMINANCE
+from ..physics.colour import LUMINANCE, linear_to_srgb
 from ..io.objects import OBJECT_HEADROOM
 
 #: Least sRGB luminance of a sky pixel (a white or blue daylight sky reads
@@ -59,11 +59,6 @@ RETURN_MARGIN = 2
 #: roofs the scan measured, keep their outline (extended, they hid a third of
 #: the sky).
 CUT_DEG = 1.0
-
-
-def _srgb(linear):
-    x = np.clip(linear, 0.0, None)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
 
 
 class PinholeProjection:
@@ -101,7 +96,7 @@ def sky_mask(image, projection: PinholeProjection, returns=None, objects=()):
     ``objects``: (M, 3) world points of each moving object at the frame
     (its Gaussians' centres), whose projected convex hull is not sky."""
     h, w = image.shape[:2]
-    srgb = _srgb(np.asarray(image, np.float64))
+    srgb = linear_to_srgb(np.clip(image, 0.0, None))
     lum = (srgb @ LUMINANCE).astype(np.float32)
     grad = np.hypot(cv2.Sobel(lum, cv2.CV_32F, 1, 0, ksize=3),
                     cv2.Sobel(lum, cv2.CV_32F, 0, 1, ksize=3)) / 8.0

@@ -6,6 +6,7 @@ import numpy as np
 import mitsuba as mi
 
 from ..outdir import atomic_write
+from ..physics.colour import linear_to_srgb
 
 
 def write_exr(path: str, image: np.ndarray, channels: list[str]) -> None:
@@ -31,7 +32,7 @@ def write_png(path: str, linear_rgb: np.ndarray, exposure: float = 1.0) -> None:
     img = np.clip(np.nan_to_num(np.asarray(linear_rgb, np.float32) * exposure), 0.0, 1.0)
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[..., 0]
-    srgb = np.where(img <= 0.0031308, img * 12.92, 1.055 * np.power(img, 1 / 2.4) - 0.055)
+    srgb = linear_to_srgb(img)
     data = np.ascontiguousarray((srgb * 255 + 0.5).astype(np.uint8))
     fmt = mi.Bitmap.PixelFormat.Y if data.ndim == 2 else mi.Bitmap.PixelFormat.RGB
     bitmap = mi.Bitmap(data, fmt)

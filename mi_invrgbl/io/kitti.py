@@ -62,6 +62,7 @@ import warnings
 
 import numpy as np
 
+from ..physics import colour
 from ..errors import UserError
 from .velodyne import read_velodyne, write_velodyne
 from .range_image import points_to_image, CameraProjection
@@ -155,9 +156,7 @@ def _match_frames(images: dict, scans: dict, image_dir: Path, scan_dir: Path):
 
 def srgb_to_linear(x: np.ndarray) -> np.ndarray:
     """sRGB-encoded values in [0, 1] -> linear (IEC 61966-2-1)."""
-    x = np.asarray(x, np.float32)
-    return np.where(x <= 0.04045, x / 12.92,
-                    ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+    return colour.srgb_to_linear(x).astype(np.float32)
 
 
 def read_image(path, linear: bool = False) -> np.ndarray:

@@ -25,7 +25,7 @@ import numpy as np
 
 from ..outdir import atomic_write
 
-from .colour import LUMINANCE
+from .colour import LUMINANCE, linear_to_srgb, srgb_to_linear
 from .fields import BY_NAME, GEOMETRY, MATERIAL
 
 SH_C0 = 0.28209479177387814  # real SH band-0 constant: colour = 0.5 + SH_C0 * f_dc
@@ -231,8 +231,7 @@ def read_ply(path: str) -> GaussianCloud:
         arrays["opacities"] = np.ones(count, np.float32)
     if "albedo" not in arrays and "f_dc_0" in names:
         srgb = np.clip(0.5 + SH_C0 * cols("f_dc_0", "f_dc_1", "f_dc_2"), 0.0, 1.0)
-        arrays["albedo"] = np.where(srgb <= 0.04045, srgb / 12.92,
-                                    ((srgb + 0.055) / 1.055) ** 2.4).astype(np.float32)
+        arrays["albedo"] = srgb_to_linear(srgb).astype(np.float32)
     cloud = GaussianCloud(**arrays, source=path)
     cloud.validate()
     norm = np.linalg.norm(cloud.quaternions, axis=1, keepdims=True)
@@ -250,7 +249,7 @@ def write_ply(path: str, cloud: GaussianCloud) -> None:
     n = len(cloud)
     # DC colour so that plain 3DGS viewers show the albedo (in sRGB).
     lin = np.clip(cloud.albedo, 0, 1)
-    srgb = np.where(lin <= 0.0031308, lin * 12.92, 1.055 * np.power(lin, 1 / 2.4) - 0.055)
+    srgb = linear_to_srgb(lin)
     # Mitsuba's own ``ellipsoids`` reader insists on x y z nx ny nz first and
     # scale_0..2 rot_0..3 last; the DC colour (for plain 3DGS viewers), the
     # opacity and the other material fields go in between.
