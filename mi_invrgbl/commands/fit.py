@@ -106,10 +106,6 @@ FLAGS = (
     ("--keep-sky-lookalikes", "prune_sky_lookalikes",
      "keep stage-1 Gaussians that have the sky's colour and only sky behind them (default: "
      "removed before stage 2; they cast shadows no roof casts)", {"invert": True}),
-    ("--camera-carving", "camera_carving",
-     "part way through stage 1, add Gaussians where the training images show something the "
-     "render lacks and the other training views agree on it (tree crowns above the LiDAR's top "
-     "beam, surfaces beyond its range)", {}),
     ("--validation-every", "validation_every",
      "every N-th training frame is a validation frame (index %% N == min(2, N // 2)): not "
      "trained on, it scores the model choices and the early stop (0: none; selection then "

@@ -16,7 +16,7 @@ MODEL_FIELDS = ("batch_rays", "lidar_batch_rays", "fit_width", "lidar_columns", 
                 "densify_fraction", "densify_screen", "densify_scope", "split_scale",
                 "max_gaussians", "stage1_range", "stage1_drop", "stage1_sky", "seed", "fit_response",
                 "sun_candidates", "sun_gaussians", "per_frame_visibility", "learn_sun_direction",
-                "prune_sky_lookalikes", "camera_carving", "sky_mask", "sun_visibility", "validation_every",
+                "prune_sky_lookalikes", "sky_mask", "sun_visibility", "validation_every",
                 "object_poses", "object_bounds", "moving_shadows")
 
 
@@ -177,10 +177,6 @@ class FitConfig:
     per_frame_visibility: bool = False
     learn_sun_direction: bool = False  # stage 2 refines the selected sun direction (opt-in)
     prune_sky_lookalikes: bool = True  # drop sky-coloured Gaussians with only sky behind them
-    #: Part way through stage 1, add Gaussians where the training images show
-    #: something the render lacks and the other views agree (.camera_carving):
-    #: what stands above the LiDAR's top beam or beyond its range.
-    camera_carving: bool = False
     sky_mask: bool = True  # mark the images' sky for stage 1 (.sky_mask); weight: stage1_sky
     sun_visibility: str = "learn"  # learn | trace: the paper's per-Gaussian v_sun, or traced only
     #: Stage 1 corrects the moving objects' per-frame poses (.object_poses).

@@ -31,7 +31,6 @@ from ..physics.gaussian_ply import GaussianCloud
 from .render import batch_order, camera_unlit, lidar_beams
 from .render import gather_rays as _gather_rays
 from .steps import safe_step
-from .camera_carving import CARVE_AT, CarvingSettings, carved_cloud, pool, render_view, vote
 from .evaluate import score_stage1
 from .object_poses import PARTS as POSE_PARTS
 from .variables import GaussianVariable, Optimizer, PoseVariable, SkySH
@@ -185,8 +184,6 @@ class Stage1:
         is, by default ``it / total``; a budgeted stage counts its time too)."""
         cfg = self.ctx.config
         progress = stage_progress(it, total) if progress is None else progress
-        if cfg.camera_carving and progress >= CARVE_AT and "camera_carving" not in self.ctx.selection:
-            self.ctx.selection["camera_carving"] = self.carve(it)
         if cfg.densify_every and it % cfg.densify_every == 0 and progress <= cfg.densify_until:
             report = self.densify()
             self.ctx.log("\n[fit] densify @%d: %s" % (it, ", ".join(
@@ -248,47 +245,6 @@ class Stage1:
         are not optimised yet."""
         self.model.set_cloud(name, cloud, local=True)
         self.model.nodes[name].values["colour"] = jit_array(mi.Float, cloud.albedo)
-
-    # ------------------------------------------------------------ carving
-    def carve(self, it, settings: CarvingSettings = CarvingSettings()):
-        """Add Gaussians to the static background where the training images
-        need geometry the render lacks (:mod:`.camera_carving`); returns its
-        record for metrics.json."""
-        import time
-        t = time.perf_counter()
-        self.pull()
-        views = []
-        for f in self.ctx.train_frames:
-            if f.camera is None:
-                continue
-            self.model.push(f.poses, stage=1)
-            views.append(render_view(self.ctx.scene, f, settings, self.ctx.config.max_hits))
-        points, colours, sources = vote(views, settings)
-        centres, srgb, votes = pool(points, colours, sources, settings)
-        static = [n for n, node in self.model.nodes.items() if not node.dynamic]
-        record = {"iteration": int(it), "unexplained_pixels": int(sum(v.unexplained.sum() for v in views)),
-                  "points": int(len(points)), "added": int(len(centres)), "node": static[0] if static else None}
-        if len(centres) and static:
-            name = static[0]
-            cloud = self.model.cloud(name, stage=1)
-            cloud.albedo = np.clip(self.model.nodes[name].numpy("colour"), 0, 1)
-            new = carved_cloud(centres, srgb, views, settings, cloud.source)
-            merged = GaussianCloud.concat([cloud.with_defaults(), new], cloud.source)
-            self._replace_cloud(name, merged)
-            n_old = len(cloud)
-            # New rows take a random old row's second moment (fresh), as split halves do.
-            parents = {name: np.concatenate([np.arange(n_old),
-                                             self.rng.integers(0, max(n_old, 1), len(new))])}
-            fresh = {name: np.arange(n_old + len(new)) >= n_old}
-            self.grad_accum.pop(name, None)
-            self.opt = self.opt.rebuild(self.variables(), parents, fresh)
-            self.hold_objects()
-        record["seconds"] = round(time.perf_counter() - t, 2)
-        self.ctx.log("\n[fit] camera carving @%d: %d unexplained training pixels, %d points agreed "
-                     "on by the other views, %d Gaussians added; %.1f s"
-                     % (it, record["unexplained_pixels"], record["points"], record["added"],
-                        record["seconds"]))
-        return record
 
     # ------------------------------------------------------------ densify
     def densify(self):
