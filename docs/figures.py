@@ -8,8 +8,10 @@ albedo and sun visibility (next to GT_ALBEDO.exr) and the albedo maps of ``DIR/f
 ``DIR/fit_rgb_only`` (written by ``tests/bench/bench_ablation.py``) for one
 training frame -> ``docs/img/albedo_ablation.png`` (or NAME.png).
 
-``kitti FIT FRAME OBJECT``: runs ``relight``, ``night``, ``insert`` (OBJECT is
-``scene.xml:node``) and ``lidar`` on the fitted scene for one frame and
+``kitti FIT FRAME OBJECT``: runs ``relight`` (the fitted sun moved to 35 degrees
+elevation, with its fitted irradiance, or a new one where the fit has no sun),
+``night``, ``insert`` (OBJECT is ``scene.xml:node``) and ``lidar`` on the fitted
+scene for one frame and
 stacks observed image, relit, night and insertion -> ``docs/img/kitti_fit_apps.png``,
 and simulated/observed LiDAR intensity and simulated range ->
 ``docs/img/kitti_fit_lidar.png``. Every picture is a render of these commands.
@@ -97,10 +99,29 @@ def kitti(fit, frame, obj, rerun=True):
     _pictures(fit, frame, work)
 
 
+#: The relit sun's irradiance where the fit found no sun (R, G, B).
+NEW_SUN = "3,2.8,2.5"
+
+
+def fitted_sun(scene):
+    """The fitted scene's sun irradiance (R, G, B), or None where it has none."""
+    import xml.etree.ElementTree as ET
+    for em in ET.parse(scene).getroot().iter("emitter"):
+        if em.get("type") != "shsun":
+            continue
+        for rgb in em.iter("rgb"):
+            if rgb.get("name") == "sun_irradiance":
+                value = [float(v) for v in rgb.get("value").replace(",", " ").split()]
+                return value if max(value) > 0 else None
+    return None
+
+
 def _commands(scene, work, sel, obj):
-    _run(["relight", scene, "--sun-elevation", "35", "--sun-azimuth", "-60",
-          "--sun-irradiance", "3,2.8,2.5", "-o",
-          os.path.join(work, "relight")] + sel)
+    # The fitted sun moved to 35 degrees keeps its irradiance; a fit without
+    # a sun gets one.
+    given = [] if fitted_sun(scene) else ["--sun-irradiance", NEW_SUN]
+    _run(["relight", scene, "--sun-elevation", "35", "--sun-azimuth", "-60"] + given
+         + ["-o", os.path.join(work, "relight")] + sel)
     _run(["night", scene, "--exposure", "3", "-o", os.path.join(work, "night")] + sel)
     _run(["insert", scene, "--object", obj, "--pose", "9,-1.5,-1.73,0", "-o",
           os.path.join(work, "insert")] + sel)
