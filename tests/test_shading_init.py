@@ -389,3 +389,48 @@ def test_unclip_stays_finite_on_nan_and_without_sun():
     v0, raised, lowered = shading_init.unclip_visibility(s["colour"], s["sky"], per_v * 0.0,
                                                          s["traced"], a, s["seen"], s["lidar"])
     assert raised == lowered == 0 and np.array_equal(v0, s["traced"])
+
+
+def test_unseen_gaussians_take_the_albedo_their_lidar_albedo_implies():
+    """Gaussians no training camera sees get a grey albedo of luminance
+    k rho, k the seen Gaussians' albedo-to-LiDAR ratio (clipped ones left
+    out of it); the seen ones keep theirs."""
+    rng = np.random.default_rng(3)
+    n = 400
+    rho = rng.uniform(0.1, 0.6, n)
+    albedo = 0.8 * rho[:, None] * np.array([1.1, 1.0, 0.8])
+    albedo[:40] = 1.0                         # clipped: not part of the scale
+    seen = np.arange(n) < 300
+    out = shading_init.fill_unseen(albedo, seen, rho)
+    assert np.array_equal(out[seen], albedo[seen])
+    lum = np.array([1.1, 1.0, 0.8]) @ shading_init.LUMINANCE
+    expected = np.clip(0.8 * lum * rho[~seen], shading_init.ALBEDO_FLOOR, shading_init.ALBEDO_TOP)
+    assert np.allclose(out[~seen], expected[:, None], rtol=1e-9)
+    assert not np.shares_memory(out, albedo)
+
+
+def test_unseen_gaussians_without_a_lidar_albedo_take_the_seen_median():
+    albedo = np.array([[0.2, 0.3, 0.4], [0.4, 0.5, 0.6], [0.6, 0.7, 0.8], [1.0, 1.0, 1.0]])
+    seen = np.array([True, True, True, False])
+    out = shading_init.fill_unseen(albedo, seen, None)
+    assert np.allclose(out[3], [0.4, 0.5, 0.6])
+    # Too few usable Gaussians for a LiDAR scale: the median as well.
+    out = shading_init.fill_unseen(albedo, seen, np.full(4, 0.3))
+    assert np.allclose(out[3], [0.4, 0.5, 0.6])
+
+
+@pytest.mark.parametrize("seen", [np.ones(5, bool), np.zeros(5, bool)])
+def test_fill_unseen_leaves_the_albedo_alone_when_all_or_none_are_seen(seen):
+    albedo = np.linspace(0.1, 0.9, 15).reshape(5, 3)
+    assert np.array_equal(shading_init.fill_unseen(albedo, seen, np.full(5, 0.3)), albedo)
+
+
+def test_fill_unseen_stays_finite_on_a_zero_or_nan_lidar_albedo():
+    rng = np.random.default_rng(4)
+    rho = rng.uniform(0.1, 0.6, 100)
+    albedo = 0.5 * rho[:, None] * np.ones(3)
+    rho[90:] = [0.0, np.nan, 0.0, np.nan, 0.0, 0.0, np.nan, 0.0, 0.0, 0.0]
+    seen = np.arange(100) < 80
+    out = shading_init.fill_unseen(albedo, seen, rho)
+    assert np.all(np.isfinite(out))
+    assert np.all((out[~seen] >= shading_init.ALBEDO_FLOOR) & (out[~seen] <= shading_init.ALBEDO_TOP))
