@@ -1530,35 +1530,6 @@ def test_stage2_start_leaves_the_specular_light_out_of_the_albedo(scene_path, tm
     assert rmse < 0.7 * rmse0
 
 
-def test_stage2_start_gives_unseen_gaussians_the_albedo_their_lidar_albedo_implies(scene_path,
-                                                                                     tmp_path):
-    """The LiDAR scans all round, the cameras look ahead: Gaussians no
-    training camera sees keep the import's default colour, and an albedo
-    made from it would be noise (clipped at 1 under a dark sky). The start
-    gives those no training pixel reaches a grey albedo proportional to
-    their LiDAR albedo, at the other Gaussians' ratio of the two
-    (``shading_init.fill_unseen``); the others keep the albedo that
-    reproduces stage 1's picture."""
-    from mi_invrgbl.fit import runner
-    from mi_invrgbl.fit.init import load_state
-
-    state = load_state(scene_path, small_config(tmp_path / "fit", sun="on"), log=lambda *a: None)
-    runner.apply_lighting(state, runner.choose_lighting(state))
-    stage2, _ = runner.freeze(state, initialise=True)
-    si = state.selection["shading_init"]
-    names = list(state.model.nodes)
-    albedo = np.concatenate([state.model.nodes[n].numpy("albedo") for n in names]).astype(np.float64)
-    rho = np.concatenate([state.model.nodes[n].numpy("lidar_albedo") for n in names]).astype(np.float64)
-    seen, _ = stage2._unseen_from
-    assert 0.0 < si["unseen"] < 1.0 and si["unseen"] == pytest.approx(np.mean(~seen), abs=1e-4)
-    grey = np.ptp(albedo, axis=1) < 1e-6
-    assert grey[~seen].all() and not grey[seen].all()
-    inside = ~seen & (rho > 0.05) & (albedo[:, 0] > 0.021) & (albedo[:, 0] < 0.999)
-    assert inside.sum() > 20
-    ratio = albedo[inside, 0] / rho[inside]
-    assert np.ptp(ratio) < 1e-4 * ratio.mean()
-
-
 def test_stage2_start_with_the_diffuse_light_through_a_coat(scene_path, tmp_path, monkeypatch):
     """With ``diffuse_fresnel`` the render dims each Gaussian's diffuse
     light by the coat's transmission on the way in and out. The start's

@@ -218,43 +218,6 @@ def clipped_albedo(albedo):
     return top, (albedo <= ALBEDO_FLOOR + 1e-4).any(axis=1) & ~top
 
 
-def fill_unseen(albedo, seen, lidar_albedo=None):
-    """The albedo (N, 3) with the rows no training pixel reaches (``~seen``)
-    set from the LiDAR and from those it reaches.
-
-    The LiDAR scans all round and the cameras look ahead, so most of an
-    imported drive's Gaussians are never in an image (77 % of the KITTI
-    excerpt's background after a 30-minute stage 1; their stage-1 colour is
-    still the import's default). An albedo made from that colour is noise,
-    and under a dark sky term it clips at 1: those Gaussians were 81 % of the
-    ones at 1 on that fit. They reflect light onto what the cameras see (the
-    bounce) and show in every view away from the recorded ones. Their only
-    reflectance measurement is the LiDAR's: they get a grey albedo of the
-    luminance ``k rho``, with ``k`` the median ratio of albedo luminance to
-    LiDAR albedo over the seen Gaussians whose albedo did not clip (the
-    scale L_lidar->rgb assumes). Without a LiDAR albedo, or with fewer than
-    :data:`MIN_GROUP` such Gaussians, the seen Gaussians' median albedo
-    (also where a LiDAR albedo is not finite)."""
-    seen = np.asarray(seen, bool)
-    out = np.array(albedo, np.float64, copy=True)
-    unseen = ~seen
-    if not unseen.any() or not seen.any():
-        return out
-    median = np.median(out[seen], axis=0)
-    if lidar_albedo is not None:
-        rho = np.asarray(lidar_albedo, np.float64)
-        top, floor = clipped_albedo(out)
-        usable = seen & ~top & ~floor & (rho > 0.05)
-        if usable.sum() >= MIN_GROUP:
-            k = float(np.median((out[usable] @ LUMINANCE) / rho[usable]))
-            grey = k * rho[unseen]
-            out[unseen] = np.where(np.isfinite(grey)[:, None],
-                                   np.clip(grey, ALBEDO_FLOOR, ALBEDO_TOP)[:, None], median)
-            return out
-    out[unseen] = median
-    return out
-
-
 def unclip_visibility(target, ambient, sun_per_visibility, visibility, albedo, seen,
                       lidar_albedo=None):
     """Sun visibility that lets clipped albedo reproduce stage 1's colour.

@@ -241,10 +241,6 @@ class Stage2:
         self.model_kind = model_kind
         self.rng = ctx.rng
         self.labels = {}
-        #: (reached by a training pixel, LiDAR albedo) of the start being
-        #: made: the albedo of the Gaussians no training pixel reaches comes
-        #: from their LiDAR albedo.
-        self._unseen_from = None
         cfg = ctx.config
         # Learned v_sun only where there is a sun whose shading is fitted.
         self.learn_sun_visibility = bool(cfg.sun_visibility == "learn" and ctx.use_sun
@@ -558,16 +554,6 @@ class Stage2:
                 table, [(self.frozen.camera[f.index], f.camera.valid())
                         for f in ctx.train_frames if f.index in self.frozen.camera])
             seen = seen_w > 0.05
-            rho_all = np.concatenate([model.nodes[n].numpy("lidar_albedo") for n in names]) \
-                if any(f.lidar is not None for f in ctx.train_frames) else None
-            # Every albedo made below gives the Gaussians no training pixel
-            # reaches at all what the LiDAR says of them
-            # (shading_init.fill_unseen). Those a pixel reaches, however
-            # faintly, keep the albedo that reproduces stage 1's colour: they
-            # are in stage 1's picture, which the start must reproduce.
-            reached = seen_w > 0
-            self._unseen_from = (reached, rho_all)
-            report["unseen"] = round(float(np.mean(~reached)), 4)
             fresnel = bool(ctx.config.diffuse_fresnel)
             if suns:
                 normals = np.array(table.normal, np.float64).T
@@ -580,7 +566,8 @@ class Stage2:
                                                     mi.Bool(True))
                     cos = cos * np.array(coat.transmission(
                         jit_array(mi.Float, cos), rough, ctx.camera_integrator.f0), np.float64)
-                rho = rho_all
+                rho = np.concatenate([model.nodes[n].numpy("lidar_albedo") for n in names]) \
+                    if any(f.lidar is not None for f in ctx.train_frames) else None
                 # Shadowed Gaussians are lit by the sky and by what their
                 # sunlit neighbours pass on: leaving the bounce out of the
                 # lit/shadow ratio credits the bounce to the sky and
@@ -685,9 +672,7 @@ class Stage2:
         render's: the render passes on what the albedo reflects of the
         direct light (one bounce: ``W (a * direct)``), not stage 1's whole
         colour ``W c``. On the fit tests' street, without the rounds, the
-        start rendered its pixels 0.054 darker than stage 1's colours.
-        The Gaussians no training pixel reaches take the albedo their LiDAR
-        albedo implies (:func:`~.shading_init.fill_unseen`)."""
+        start rendered its pixels 0.054 darker than stage 1's colours."""
         colour, spec, D, sun_term, bounce, indirect, t_out = light
         ctx, model = self.ctx, self.ctx.model
         ctx.params[ctx.sky_key] = sky0 * k
@@ -696,16 +681,12 @@ class Stage2:
         ctx.params.update()
         # ``t_out``: the diffuse light's way out through the coat, per
         # Gaussian as the training cameras see it (1 without diffuse_fresnel).
-        seen, rho = self._unseen_from if self._unseen_from is not None else (None, None)
-
-        def filled(albedo):
-            return albedo if seen is None else shading_init.fill_unseen(albedo, seen, rho)
-        albedo = filled(shading_init.albedo_from_shading(colour - spec * k, (D * k + bounce) * t_out,
-                                                         sun_term * k * t_out))
+        albedo = shading_init.albedo_from_shading(colour - spec * k, (D * k + bounce) * t_out,
+                                                  sun_term * k * t_out)
         for _ in range(BOUNCE_ROUNDS if indirect is not None else 0):
-            albedo = filled(shading_init.albedo_from_shading(colour - spec * k,
-                                                             (D + indirect(albedo)) * k * t_out,
-                                                             sun_term * k * t_out))
+            albedo = shading_init.albedo_from_shading(colour - spec * k,
+                                                      (D + indirect(albedo)) * k * t_out,
+                                                      sun_term * k * t_out)
         for name, a in zip(names, shading_init.split_by_node(albedo, table, counts)):
             model.nodes[name].values["albedo"] = jit_array(mi.Float, a)
         self.build_optimizer()
