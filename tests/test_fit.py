@@ -724,6 +724,24 @@ def test_a_spent_deadline_stops_stage2_only_after_its_least_steps():
     assert stop(4) == "its share of the budget is spent"
 
 
+def test_a_budgeted_stage2_runs_its_least_steps_whatever_set_its_time(scene_path, tmp_path,
+                                                                      monkeypatch):
+    # The budget left stage 2 more than its least steps by the timed step
+    # (not the minimum's branch), but its steps ran slower than timed: the
+    # deadline, spent at once here, still lets it run MIN_STAGE2_STEPS.
+    from mi_invrgbl.fit import runner
+    from mi_invrgbl.fit.budget import MIN_STAGE2_STEPS
+    monkeypatch.setattr(runner, "stage2_seconds", lambda left, reserve, spi: (1e-3, False))
+    lines = []
+    metrics = run_fit(scene_path, small_config(tmp_path, budget_minutes=0.75, eval_every=5,
+                                               sun_trial_iterations=0), log=lines.append)
+    assert metrics["iterations"]["stage 2"] >= MIN_STAGE2_STEPS, metrics["iterations"]
+    stops = [str(x) for x in lines if "stage 2 stops at iteration" in str(x)]
+    assert len(stops) <= 1
+    if stops and "share of the budget is spent" in stops[0]:
+        assert int(stops[0].split("iteration ")[1].split()[0]) >= MIN_STAGE2_STEPS
+
+
 def test_validation_stop_returns_to_the_best_state():
     # A stage whose validation score peaks at iteration 2 and falls after:
     # it stops after PATIENCE evaluations without a gain and goes back to
