@@ -21,15 +21,12 @@ import math
 
 import numpy as np
 
+# The sRGB curve (physics/colour.py); the metrics' callers take it from here too.
+from ..physics.colour import linear_to_srgb, srgb_to_linear  # noqa: F401
+
 #: SSIM constants of Wang et al. 2004.
 SSIM_K1, SSIM_K2 = 0.01, 0.03
 SSIM_WINDOW, SSIM_SIGMA = 11, 1.5
-
-
-# The sRGB curve lives with the other colour constants; imported here so that
-# the metrics' users keep one place to take it from.
-from ..physics.colour import (SRGB_A, SRGB_GAMMA, SRGB_KNEE, SRGB_SLOPE,  # noqa: E402,F401
-                              linear_to_srgb, srgb_to_linear)
 
 
 def _prepare(pred, target, mask):

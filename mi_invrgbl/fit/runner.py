@@ -310,13 +310,15 @@ def fit_materials(state: FitState, stage2, start, checkpoint, budget=None, fresh
             state.log("[fit] budget: stage 2 gets %.0f of its %.0f s (the fixed costs so far took "
                       "%.0f s; a larger --budget gives it its share)"
                       % (seconds, budget.share("stage 2"), t - budget.t_start))
-        state.selection.setdefault("budget", {})["stage 2"] = plan.as_dict()
         # Its least steps are counted, not timed, whether the minimum or the
         # budget set its time: the validation scores between steps are not
         # in the timed step, and a deadline set from it stopped an 8-minute
         # KITTI fit's stage 2 at 33 of its least 50, and an 8-minute street
-        # fit whose budget bought 66 steps at 40 (a slower machine).
-        total = max(plan.iterations, start + MIN_STAGE2_STEPS)
+        # fit whose budget bought 66 steps at 40 (a slower machine). (The
+        # plan, which a resumed fit goes on with, holds them too.)
+        plan.iterations = max(plan.iterations, start + MIN_STAGE2_STEPS)
+        state.selection.setdefault("budget", {})["stage 2"] = plan.as_dict()
+        total = plan.iterations
         run.stop = stage2_stop(state, stage2, plan, t + seconds,
                                not_before=start + MIN_STAGE2_STEPS)
         run.replan = replanner(state, plan, start, t + seconds)
