@@ -103,23 +103,20 @@ def kitti(fit, frame, obj, rerun=True):
 NEW_SUN = "3,2.8,2.5"
 
 
-def fitted_sun(scene):
-    """The fitted scene's sun irradiance (R, G, B), or None where it has none."""
-    import xml.etree.ElementTree as ET
-    for em in ET.parse(scene).getroot().iter("emitter"):
-        if em.get("type") != "shsun":
-            continue
-        for rgb in em.iter("rgb"):
-            if rgb.get("name") == "sun_irradiance":
-                value = [float(v) for v in rgb.get("value").replace(",", " ").split()]
-                return value if max(value) > 0 else None
-    return None
+def has_sun(scene):
+    """Whether the scene's light has a sun, read as ``relight`` reads it."""
+    import mitsuba as mi
+    mi.set_variant("llvm_ad_rgb")
+    from mi_invrgbl.apps.lighting_edit import lighting_of_doc
+    from mi_invrgbl.scene.xml import SceneDoc
+    lighting = lighting_of_doc(SceneDoc.load(scene))
+    return lighting is not None and lighting.has_sun
 
 
 def _commands(scene, work, sel, obj):
     # The fitted sun moved to 35 degrees keeps its irradiance; a fit without
     # a sun gets one.
-    given = [] if fitted_sun(scene) else ["--sun-irradiance", NEW_SUN]
+    given = [] if has_sun(scene) else ["--sun-irradiance", NEW_SUN]
     _run(["relight", scene, "--sun-elevation", "35", "--sun-azimuth", "-60"] + given
          + ["-o", os.path.join(work, "relight")] + sel)
     _run(["night", scene, "--exposure", "3", "-o", os.path.join(work, "night")] + sel)

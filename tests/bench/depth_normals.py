@@ -37,9 +37,10 @@ from mi_invrgbl.eval.ground_truth import gt_alignment, source_number  # noqa: E4
 from mi_invrgbl.eval.inputs import read_map  # noqa: E402
 from mi_invrgbl.eval.rendering import render_camera  # noqa: E402
 from mi_invrgbl.eval.scoring import EVAL_SPP  # noqa: E402
-from mi_invrgbl.fit.observations import camera_rays  # noqa: E402
+from mi_invrgbl.synthetic.groundtruth import camera_rays, rows as as_rows  # noqa: E402
 from mi_invrgbl.scene.posing import set_frame  # noqa: E402
 from albedo_breakdown import first_channel, truth_edges  # noqa: E402
+from normal_oracle import z_per_unit_distance  # noqa: E402
 from street_truth import open_fit  # noqa: E402
 
 #: A neighbour farther than this fraction of the pixel's distance is across
@@ -97,10 +98,9 @@ def main(argv=None):
         true_z = first_channel(read_map(base + "_depth.exr"))
         alpha = cam["alpha"]
         dist = cam["depth"] / np.maximum(alpha, 1e-6)
-        rays = camera_rays(sensor, w, h)
-        d = np.stack([np.array(rays.d[i], np.float64) for i in range(3)], -1).reshape(h, w, 3)
-        forward = np.array(sensor.world_transform().matrix, np.float64).reshape(4, 4)[:3, 2]
-        true_dist = true_z / np.maximum(d @ (forward / np.linalg.norm(forward)), 1e-6)
+        # The truth's own pixel-centre rays, and its camera z per unit of distance.
+        d = as_rows(camera_rays(sensor, w, h).d).reshape(h, w, 3)
+        true_dist = true_z / np.maximum(z_per_unit_distance(sensor, w, h), 1e-6)
         ratio = np.where(alpha > 0.5, dist / np.maximum(true_dist, 1e-6), np.inf)
         fitted = cam["normal"] / np.maximum(np.linalg.norm(cam["normal"], axis=-1, keepdims=True), 1e-9)
         from_depth, has = depth_normals(d * dist[..., None], alpha)
