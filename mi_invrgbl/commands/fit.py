@@ -106,10 +106,6 @@ FLAGS = (
     ("--keep-sky-lookalikes", "prune_sky_lookalikes",
      "keep stage-1 Gaussians that have the sky's colour and only sky behind them (default: "
      "removed before stage 2; they cast shadows no roof casts)", {"invert": True}),
-    ("--no-shadow-carving", "shadow_carving",
-     "keep in the fitted scene the Gaussians no camera or LiDAR beam sees that block the fitted "
-     "sun from Gaussians the images show sunlit (default: left out; relit scenes would trace "
-     "shadows through them that no image shows)", {"invert": True}),
     ("--validation-every", "validation_every",
      "every N-th training frame is a validation frame (index %% N == min(2, N // 2)): not "
      "trained on, it scores the model choices and the early stop (0: none; selection then "

@@ -177,10 +177,6 @@ class FitConfig:
     per_frame_visibility: bool = False
     learn_sun_direction: bool = False  # stage 2 refines the selected sun direction (opt-in)
     prune_sky_lookalikes: bool = True  # drop sky-coloured Gaussians with only sky behind them
-    #: After stage 2, leave out of the fitted scene the Gaussians no camera or
-    #: LiDAR beam sees that block the sun from what the images show sunlit
-    #: (.shadow_carving): relit scenes trace shadows through them.
-    shadow_carving: bool = True
     sky_mask: bool = True  # mark the images' sky for stage 1 (.sky_mask); weight: stage1_sky
     sun_visibility: str = "learn"  # learn | trace: the paper's per-Gaussian v_sun, or traced only
     #: Stage 1 corrects the moving objects' per-frame poses (.object_poses).

@@ -110,14 +110,10 @@ def write_outputs(ctx, stage2, interrupted=False):
     fit_dir = ctx.fit_dir
     os.makedirs(fit_dir, exist_ok=True)
     stage = 2 if stage2 is not None else 1
-    plys, counts = {}, {}
+    plys = {}
     for name in ctx.model.nodes:
         path = os.path.join(fit_dir, "%s.ply" % name)
-        cloud = ctx.model.cloud(name, stage=stage)
-        if name in ctx.carved:
-            cloud = cloud.subset(~ctx.carved[name])
-        write_ply(path, cloud)
-        counts[name] = len(cloud.centers)
+        write_ply(path, ctx.model.cloud(name, stage=stage))
         plys[name] = path
     atomic_write_text(os.path.join(fit_dir, "scene.xml"), fitted_xml(ctx))
     atomic_write_text(os.path.join(fit_dir, "scene_lidar.xml"), fitted_xml(ctx, lidar=True))
@@ -141,7 +137,7 @@ def write_outputs(ctx, stage2, interrupted=False):
     metrics = {
         "scene": ctx.scene_path,
         "interrupted": interrupted,
-        "gaussians": counts,
+        "gaussians": {n: node.count for n, node in ctx.model.nodes.items()},
         "frames": {"train": [f.index for f in ctx.train_frames],
                    "validation": [f.index for f in ctx.validation_frames],
                    "held_out": [f.index for f in ctx.held_out_frames]},

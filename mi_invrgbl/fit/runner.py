@@ -51,7 +51,6 @@ from .model_selection import (SUN_TRIAL_MARGIN, LightingChoice, LobeChoice, choo
                               choose_lighting, choose_render_samples, choose_sky_start, log_lighting,
                               sun_alternative)
 from .progress import SpeedErrorLog
-from .shadow_carving import carve_fit
 from .stage1 import Stage1, moves_with_positions
 from .stage2 import RETRACE_TURN_DEG, FrozenScene, Stage2
 from .state import FitState
@@ -136,8 +135,6 @@ def run_fit(scene_path, config: FitConfig, log=print):
             state, stage2, frozen,
             deadline=None if budget is None else budget.deadline - OUTPUT_RESERVE * 60 * budget.minutes)
         state.times["samples selection"] = time.perf_counter() - t
-        if state.config.shadow_carving:
-            carve_shadows(state, frozen)
         log_choices(state)
         checkpoint("done", last)
         interrupted = False
@@ -704,22 +701,6 @@ def log_choices(state: FitState):
               else " (%s PSNR %s; %.1f s)" % (m["scored_on"], ", ".join(
                   "M=%s %.2f dB" % (k, v["psnr"]) for k, v in m["by_samples"].items()),
                   state.times["samples selection"])))
-
-
-def carve_shadows(state: FitState, frozen):
-    """Shadow carving (:mod:`.shadow_carving`): the unseen Gaussians that
-    block the fitted sun from sunlit ones are left out of the outputs."""
-    t = time.perf_counter()
-    state.carved, report = carve_fit(state, frozen)
-    state.times["shadow carving"] = time.perf_counter() - t
-    if report is None:
-        return
-    state.selection["shadow_carving"] = dict(report.as_dict(), seconds=round(state.times["shadow carving"], 1))
-    state.log("[fit] shadow carving: %d sunlit Gaussians traced towards the sun, %.1f %% of them "
-              "shadowed; %d unseen Gaussians blocking them left out (%s), then %.1f %%; %.1f s"
-              % (report.receivers, 100 * report.shadowed_before, sum(report.dropped),
-                 ", ".join("%s %d" % (n, m.sum()) for n, m in state.carved.items()) or "none",
-                 100 * report.shadowed_after, state.times["shadow carving"]))
 
 
 def report_sun_refinement(ctx):

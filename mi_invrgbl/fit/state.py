@@ -82,9 +82,6 @@ class FitState:
     #: The moving objects' boxes stage 1 keeps their Gaussians in
     #: (:class:`.object_bounds.ObjectBox`; empty: off or nothing moves).
     object_boxes: list = field(default_factory=list)
-    #: Per node name: its Gaussians shadow carving leaves out of the fitted
-    #: scene (:mod:`.shadow_carving`; the model keeps them, the outputs do not).
-    carved: dict = field(default_factory=dict)
     selection: dict = field(default_factory=dict)
     times: dict = field(default_factory=dict)
     iterations: dict = field(default_factory=dict)   # stage -> last iteration run
