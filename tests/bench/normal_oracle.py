@@ -188,7 +188,20 @@ def variant_folder(fit, name):
 
 
 def write_variant(fit, name, normals, opacities):
-    """The fit's scene with the background's normals and opacities replaced,
+    """The fit's scene with the background's normals and opacities replaced
+    (:func:`write_edited`)."""
+    def edit(cloud):
+        if len(normals) != len(cloud.centers) or len(opacities) != len(cloud.centers):
+            raise ValueError("%s: %d normals and %d opacities for %d Gaussians"
+                             % (fit, len(normals), len(opacities), len(cloud.centers)))
+        cloud.normals = np.asarray(normals, np.float32)
+        # A logit-stored opacity of exactly 0 would be -inf in the file.
+        cloud.opacities = np.maximum(np.asarray(opacities, np.float32), 1e-6)
+    return write_edited(fit, name, edit)
+
+
+def write_edited(fit, name, edit):
+    """The fit's scene with ``edit(cloud)`` applied to its ``background.ply``,
     as a sibling folder (same depth, so frames.json's relative paths hold);
     written under a temporary name and renamed into place."""
     import glob
@@ -203,9 +216,7 @@ def write_variant(fit, name, normals, opacities):
             if os.path.isfile(os.path.join(fit, f)) and f != "background.ply":
                 shutil.copy2(os.path.join(fit, f), os.path.join(tmp, f))
         cloud = read_ply(os.path.join(fit, "background.ply"))
-        cloud.normals = np.asarray(normals, np.float32)
-        # A logit-stored opacity of exactly 0 would be -inf in the file.
-        cloud.opacities = np.maximum(np.asarray(opacities, np.float32), 1e-6)
+        edit(cloud)
         write_ply(os.path.join(tmp, "background.ply"), cloud)
         os.rename(tmp, target)
     except BaseException:
