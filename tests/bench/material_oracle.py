@@ -29,13 +29,12 @@ import argparse  # noqa: E402
 import json  # noqa: E402
 import os  # noqa: E402
 
-import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 
 import mi_invrgbl  # noqa: E402,F401
 from mi_invrgbl.physics.gaussian_ply import read_ply  # noqa: E402
-from street_truth import open_fit, scene_from_truth  # noqa: E402
+from street_truth import nearest_points, open_fit, scene_from_truth  # noqa: E402
 from normal_oracle import variant_folder, write_edited  # noqa: E402
 
 #: Points sampled per square metre of the truth's meshes (about 5 cm apart).
@@ -63,13 +62,6 @@ def sample_materials(gt, density=DENSITY, seed=0):
     return np.concatenate(pts), np.concatenate(rough), np.concatenate(alb)
 
 
-def nearest(points, queries):
-    """Index of and distance to each query's nearest point."""
-    index = cv2.flann_Index(np.ascontiguousarray(points, np.float32), dict(algorithm=1, trees=4))
-    pick, d2 = index.knnSearch(np.ascontiguousarray(queries, np.float32), 1, params=dict(checks=64))
-    return pick[:, 0].astype(np.int64), np.sqrt(np.maximum(d2[:, 0], 0.0))
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("fit", help="fitted scene folder (fit/)")
@@ -87,7 +79,7 @@ def main():
     T = scene_from_truth(frames[positions[0]], cams)
     points = points @ T[:3, :3].T + T[:3, 3]
     cloud = read_ply(os.path.join(args.fit, "background.ply"))
-    pick, dist = nearest(points, cloud.centers)
+    pick, dist = nearest_points(points, cloud.centers)
     on = dist <= args.off
     fr = cloud.roughness.ravel()
     print("%s: %d background Gaussians, %.3f within %.2f m of a true surface; there the fitted "

@@ -55,7 +55,7 @@ from mi_invrgbl.eval.rendering import integrator_like, render_camera  # noqa: E4
 from mi_invrgbl.eval.scoring import EVAL_SPP  # noqa: E402
 from mi_invrgbl.physics.gaussian_ply import read_ply, write_ply  # noqa: E402
 from mi_invrgbl.scene.posing import set_frame  # noqa: E402
-from street_truth import open_fit, scene_from_truth  # noqa: E402
+from street_truth import nearest_points, open_fit, scene_from_truth  # noqa: E402
 from albedo_breakdown import first_channel, truth_edges  # noqa: E402
 
 #: A pixel whose fitted depth is within this fraction of the truth's shows
@@ -254,10 +254,8 @@ def main():
         raise SystemExit("%s: background.ply has %d Gaussians, the loaded scene %d"
                          % (args.fit, len(centres), len(normal0)))
     points, point_normals = truth_surface(gt, frames, positions)
-    index = cv2.flann_Index(np.ascontiguousarray(points, np.float32), dict(algorithm=1, trees=4))
-    pick, d2 = index.knnSearch(np.ascontiguousarray(centres, np.float32), 1, params=dict(checks=64))
-    dist = np.sqrt(d2[:, 0])
-    true_n = point_normals[pick[:, 0]]
+    pick, dist = nearest_points(points, centres)
+    true_n = point_normals[pick]
     true_n = true_n * np.sign(np.sum(true_n * normal0, axis=1, keepdims=True) + 1e-12)
     on = dist <= args.off
     ang = np.degrees(np.arccos(np.clip(np.abs(np.sum(normal0 * true_n, axis=1)), 0.0, 1.0)))

@@ -53,6 +53,14 @@ def scene_from_truth(rec, cams):
     return np.asarray(rec.camera_to_world, np.float64) @ np.linalg.inv(np.asarray(cams[number(rec)], np.float64))
 
 
+def nearest_points(points, queries):
+    """Index of (int64) and distance to each query's nearest point among
+    ``points`` (approximate: a FLANN forest, 64 checks)."""
+    index = cv2.flann_Index(np.ascontiguousarray(points, np.float32), dict(algorithm=1, trees=4))
+    pick, d2 = index.knnSearch(np.ascontiguousarray(queries, np.float32), 1, params=dict(checks=64))
+    return pick[:, 0].astype(np.int64), np.sqrt(np.maximum(d2[:, 0], 0.0))
+
+
 def truth_map(gt, kind, number):
     """Ground-truth map ``kind`` (albedo, normal, sun_visibility, mesh_id, ...) of a frame."""
     return read_exr(os.path.join(gt, "maps", "%06d_%s.exr" % (number, kind)))

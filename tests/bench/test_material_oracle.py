@@ -37,7 +37,7 @@ def test_points_carry_their_static_surface_material(tmp_path):
     points, rough, alb = mo.sample_materials(_truth(tmp_path), density=100.0)
     assert len(points) == len(rough) == len(alb) >= 200
     # The third query stands where the moving car is: 2 m above the ground.
-    pick, dist = mo.nearest(points, np.array([[1.0, 1.0, 0.05], [1.0, 1.0, 4.9], [1.0, 1.0, 2.0]]))
+    pick, dist = mo.nearest_points(points, np.array([[1.0, 1.0, 0.05], [1.0, 1.0, 4.9], [1.0, 1.0, 2.0]]))
     assert rough[pick].tolist() == [0.9, 0.08, 0.9]
     assert np.allclose(alb[pick[0]], [0.4, 0.3, 0.2]) and np.allclose(alb[pick[1]], [0.04, 0.05, 0.06])
     # The moving car is not a static surface: nothing is sampled on it.
