@@ -100,7 +100,7 @@ def main(argv=None):
         dist = cam["depth"] / np.maximum(alpha, 1e-6)
         # The truth's own pixel-centre rays, and its camera z per unit of distance.
         d = as_rows(camera_rays(sensor, w, h).d).reshape(h, w, 3)
-        true_dist = true_z / np.maximum(z_per_unit_distance(sensor, w, h), 1e-6)
+        true_dist = true_z / np.maximum(z_per_unit_distance(sensor, w, h, d), 1e-6)
         ratio = np.where(alpha > 0.5, dist / np.maximum(true_dist, 1e-6), np.inf)
         fitted = cam["normal"] / np.maximum(np.linalg.norm(cam["normal"], axis=-1, keepdims=True), 1e-9)
         from_depth, has = depth_normals(d * dist[..., None], alpha)

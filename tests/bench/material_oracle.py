@@ -34,7 +34,7 @@ import trimesh  # noqa: E402
 
 import mi_invrgbl  # noqa: E402,F401
 from mi_invrgbl.physics.gaussian_ply import read_ply  # noqa: E402
-from street_truth import nearest_points, open_fit, scene_from_truth  # noqa: E402
+from street_truth import nearest_points, open_fit, truth_to_scene  # noqa: E402
 from normal_oracle import variant_folder, write_edited  # noqa: E402
 
 #: Points sampled per square metre of the truth's meshes (about 5 cm apart).
@@ -75,8 +75,7 @@ def main():
         raise SystemExit("%s: exists; not overwritten" % taken[0])
     frames, gt, positions, _ = open_fit(args.fit, "held-out")
     points, rough, alb = sample_materials(gt)
-    cams = json.loads((gt / "trajectory.json").read_text())["world_from_cam"]
-    T = scene_from_truth(frames[positions[0]], cams)
+    T = truth_to_scene(gt, frames[positions[0]])
     points = points @ T[:3, :3].T + T[:3, 3]
     cloud = read_ply(os.path.join(args.fit, "background.ply"))
     pick, dist = nearest_points(points, cloud.centers)

@@ -55,7 +55,7 @@ from mi_invrgbl.eval.rendering import integrator_like, render_camera  # noqa: E4
 from mi_invrgbl.eval.scoring import EVAL_SPP  # noqa: E402
 from mi_invrgbl.physics.gaussian_ply import read_ply, write_ply  # noqa: E402
 from mi_invrgbl.scene.posing import set_frame  # noqa: E402
-from street_truth import nearest_points, open_fit, scene_from_truth  # noqa: E402
+from street_truth import nearest_points, open_fit, truth_to_scene  # noqa: E402
 from albedo_breakdown import first_channel, truth_edges  # noqa: E402
 
 #: A pixel whose fitted depth is within this fraction of the truth's shows
@@ -73,16 +73,18 @@ def truth_surface(gt, frames, positions):
              for d in meshes if not d.get("dynamic") and (gt / "meshes" / (d["name"] + ".ply")).is_file()]
     mesh = trimesh.util.concatenate(parts)
     points, faces = trimesh.sample.sample_surface(mesh, SAMPLES, seed=0)
-    cams = json.loads((gt / "trajectory.json").read_text())["world_from_cam"]
-    T = scene_from_truth(frames[positions[0]], cams)
+    T = truth_to_scene(gt, frames[positions[0]])
     return points @ T[:3, :3].T + T[:3, 3], mesh.face_normals[faces] @ T[:3, :3].T
 
 
-def z_per_unit_distance(sensor, width, height):
+def z_per_unit_distance(sensor, width, height, directions=None):
     """Per pixel: camera-space depth per unit of distance along the centre
-    ray (the truth's depth maps are camera z, the depth AOV a distance)."""
+    ray (the truth's depth maps are camera z, the depth AOV a distance).
+    ``directions``: the centre rays' (H*W, 3) directions where the caller
+    has them already (else traced from the sensor)."""
     from mi_invrgbl.synthetic.groundtruth import camera_rays, rows
-    d = rows(camera_rays(sensor, width, height).d)
+    d = rows(camera_rays(sensor, width, height).d) if directions is None else \
+        np.asarray(directions, np.float64).reshape(-1, 3)
     forward = np.array(sensor.world_transform().matrix, np.float64).reshape(4, 4)[:3, 2]
     return (d @ (forward / np.linalg.norm(forward))).reshape(height, width)
 

@@ -53,6 +53,13 @@ def scene_from_truth(rec, cams):
     return np.asarray(rec.camera_to_world, np.float64) @ np.linalg.inv(np.asarray(cams[number(rec)], np.float64))
 
 
+def truth_to_scene(gt, rec):
+    """:func:`scene_from_truth` for frame record ``rec``, with the truth's
+    camera poses read from ``gt``'s ``trajectory.json``."""
+    cams = json.load(open(os.path.join(gt, "trajectory.json")))["world_from_cam"]
+    return scene_from_truth(rec, cams)
+
+
 def nearest_points(points, queries):
     """Index of (int64) and distance to each query's nearest point among
     ``points`` (approximate: a FLANN forest, 64 checks)."""
