@@ -56,3 +56,44 @@ def test_an_edit_writes_a_sibling_and_keeps_the_fit(tmp_path):
     assert np.allclose(read_ply(str(target / "background.ply")).roughness, 0.25)
     assert (fit / "background.ply").read_bytes() == before
     assert _listing(tmp_path) == ["fit_8min", "fit_8min_true_roughness"]
+
+
+def test_a_textured_surface_gives_its_texture_at_the_point(tmp_path):
+    # A 2 m square whose texture is white for u < 0.5 and black beyond:
+    # points on the square's first metre (u = x / 2 < 0.5) read white, the
+    # rest black, as Mitsuba's bitmap reads the sRGB image; --nominal's
+    # single value stays the material's.
+    import cv2
+    gt = tmp_path / "gt"
+    (gt / "meshes").mkdir(parents=True)
+    (gt / "textures").mkdir()
+    image = np.zeros((8, 16, 3), np.uint8)
+    image[:, :8] = 255
+    cv2.imwrite(str(gt / "textures" / "paint.png"), image)
+    square = trimesh.Trimesh([[0, 0, 0], [2, 0, 0], [2, 2, 0], [0, 2, 0]], [[0, 1, 2], [0, 2, 3]],
+                             process=False)
+    square.visual = trimesh.visual.TextureVisuals(uv=square.vertices[:, :2] / 2.0)
+    square.export(str(gt / "meshes" / "ground.ply"))
+    (gt / "materials.json").write_text(json.dumps({
+        "meshes": [{"name": "ground", "file": "meshes/ground.ply", "material": "road", "dynamic": False}],
+        "materials": {"road": {"roughness": 0.9, "albedo": [0.1, 0.1, 0.1],
+                               "albedo_texture": "textures/paint.png"}}}))
+    points, _, alb = mo.sample_materials(gt, density=400.0)
+    # Away from the bilinear seams: the edge at x = 1 and, as the texture
+    # repeats, its wrap at x = 0 and 2.
+    inner = np.min(np.abs(points[:, :1] - [0.0, 1.0, 2.0]), axis=1) > 0.1
+    white = points[:, 0] < 1.0
+    assert np.allclose(alb[inner & white], 1.0, atol=1e-3)
+    assert np.allclose(alb[inner & ~white], 0.0, atol=1e-3)
+    _, _, nominal = mo.sample_materials(gt, density=400.0, textures=False)
+    assert np.allclose(nominal, 0.1)
+
+
+def test_the_channel_scale_is_the_least_squares_level():
+    truth = np.array([[0.2, 0.1, 0.4], [0.4, 0.3, 0.1]])
+    assert np.allclose(mo.channel_scale(1.5 * truth, truth), 1.5)
+    fitted = truth * [2.0, 0.5, 1.0] + [[0.01, -0.01, 0.0], [-0.005, 0.0033, 0.0]]
+    s = mo.channel_scale(fitted, truth)
+    # Least squares: the residual is orthogonal to the truth in each channel.
+    assert np.allclose(np.sum((fitted - s * truth) * truth, axis=0), 0.0, atol=1e-12)
+    assert np.all(np.isfinite(mo.channel_scale(fitted, np.zeros_like(truth))))
