@@ -739,6 +739,8 @@ def test_a_budgeted_stage2_runs_its_least_steps_whatever_set_its_time(scene_path
     from mi_invrgbl.fit import runner
     from mi_invrgbl.fit.budget import MIN_STAGE2_STEPS
     monkeypatch.setattr(runner, "stage2_seconds", lambda left, reserve, spi: (1e-3, False))
+    # Stage 1 is not what is tested: a spent share keeps it to its own least steps.
+    monkeypatch.setattr(runner, "stage1_seconds", lambda minutes, elapsed, frames, spi: 1e-3)
     lines = []
     metrics = run_fit(scene_path, small_config(tmp_path, budget_minutes=0.75, eval_every=5,
                                                sun_trial_iterations=0), log=lines.append)

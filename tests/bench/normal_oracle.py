@@ -203,23 +203,26 @@ def write_variant(fit, name, normals, opacities):
 
 
 def write_edited(fit, name, edit):
-    """The fit's scene with ``edit(cloud)`` applied to its ``background.ply``,
-    as a sibling folder (same depth, so frames.json's relative paths hold);
-    written under a temporary name and renamed into place."""
+    """The fit's scene with ``edit(cloud)`` applied to its ``background.ply``
+    (or, with ``edit`` a dict ``{ply file name: edit}``, to each cloud it
+    names), as a sibling folder (same depth, so frames.json's relative paths
+    hold); written under a temporary name and renamed into place."""
     import glob
     import shutil
     import tempfile
     target = variant_folder(fit, name)
     if os.path.exists(target):
         raise SystemExit("%s: exists; not overwritten" % target)
+    edits = edit if isinstance(edit, dict) else {"background.ply": edit}
     tmp = tempfile.mkdtemp(prefix=os.path.basename(target) + ".", dir=os.path.dirname(fit) or ".")
     try:
         for f in list(SCENE_FILES) + [os.path.basename(p) for p in glob.glob(os.path.join(fit, "*.ply"))]:
-            if os.path.isfile(os.path.join(fit, f)) and f != "background.ply":
+            if os.path.isfile(os.path.join(fit, f)) and f not in edits:
                 shutil.copy2(os.path.join(fit, f), os.path.join(tmp, f))
-        cloud = read_ply(os.path.join(fit, "background.ply"))
-        edit(cloud)
-        write_ply(os.path.join(tmp, "background.ply"), cloud)
+        for f, change in edits.items():
+            cloud = read_ply(os.path.join(fit, f))
+            change(cloud)
+            write_ply(os.path.join(tmp, f), cloud)
         os.rename(tmp, target)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -97,3 +97,53 @@ def test_the_channel_scale_is_the_least_squares_level():
     # Least squares: the residual is orthogonal to the truth in each channel.
     assert np.allclose(np.sum((fitted - s * truth) * truth, axis=0), 0.0, atol=1e-12)
     assert np.all(np.isfinite(mo.channel_scale(fitted, np.zeros_like(truth))))
+
+
+def test_the_albedo_floor_solves_the_least_squares_problem():
+    # cgls against numpy's dense least squares on a random sparse system of
+    # two "frames"; a column no row touches keeps its start value.
+    import albedo_floor as af
+    rng = np.random.default_rng(3)
+    frames, dense = [], []
+    for n_rows in (40, 25):
+        rows = np.repeat(np.arange(n_rows), 3)
+        cols = rng.integers(0, 9, rows.size)          # column 9 is never hit
+        vals = rng.uniform(0.1, 1.0, rows.size)
+        target = rng.uniform(0.0, 1.0, (n_rows, 3))
+        frames.append(af.Rows(rows, cols, vals, target, np.ones((1, n_rows), bool),
+                              np.zeros(n_rows, np.int64)))
+        A = np.zeros((n_rows, 10))
+        np.add.at(A, (rows, cols), vals)
+        dense.append((A, target))
+    A = np.concatenate([a for a, _ in dense])
+    b = np.concatenate([t for _, t in dense])
+    x0 = np.full((10, 3), 0.5)
+    x = af.cgls(frames, x0, 60)
+    best = np.linalg.lstsq(A[:, :9], b, rcond=None)[0]
+    assert np.allclose(x[:9], best, atol=1e-6) and np.allclose(x[9], 0.5)
+    # A frame's score is eval's: the scaled RMSE of the rendered rows.
+    pred = frames[0].apply(x)
+    img = lambda v: v.reshape(1, -1, 3)  # noqa: E731
+    assert np.isclose(frames[0].score(x), af.M.albedo_rmse_scaled(img(pred), img(frames[0].target)))
+
+
+def test_the_normal_descent_keeps_unit_normals_and_finds_consistent_ones():
+    # Pixels blending unit normals (one alone, two halves): targets made from
+    # known normals are met from a random unit start, every solved normal is
+    # unit length, and the rows' targets are left as they were.
+    import albedo_floor as af
+    rng = np.random.default_rng(5)
+    truth = af.unit(rng.normal(size=(6, 3)) + [0.0, 0.0, 2.0])
+    rows = np.array([0, 1, 2, 3, 4, 5, 6, 6, 7, 7, 8, 8])
+    cols = np.array([0, 1, 2, 3, 4, 5, 0, 1, 2, 3, 4, 5])
+    vals = np.array([1.0] * 6 + [0.5] * 6)
+    blend = np.zeros((9, 3))
+    np.add.at(blend, rows, vals[:, None] * truth[cols])
+    target = af.unit(blend)
+    r = af.Rows(rows, cols, vals, target.copy(), np.ones((1, 9), bool), np.zeros(9, np.int64),
+                kind="normal")
+    start = af.unit(rng.normal(size=(6, 3)))
+    assert r.score(start) > 20.0
+    x = af.descend_normals([r], start, 600, 0.02)
+    assert np.allclose(np.linalg.norm(x, axis=1), 1.0) and np.array_equal(r.target, target)
+    assert r.score(x) < 1.0 and np.allclose(x, truth, atol=3e-2)
