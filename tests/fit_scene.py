@@ -13,6 +13,7 @@ import json
 import os
 
 import numpy as np
+import pytest
 import mitsuba as mi
 import variant_choice
 
@@ -157,6 +158,34 @@ def build_with_block(out_dir, n_frames=4, width=32, height=12, columns=64):
     json.dump(meta, open(os.path.join(out_dir, "frames.json"), "w"))
     return path
 
+
+def small_config(out, **kw):
+    """A fit configuration small enough for a test on :func:`build`'s scene."""
+    from mi_invrgbl.fit.runner import FitConfig
+    base = dict(output=str(out), stage1_iterations=10, stage2_iterations=24, fit_width=48,
+                lidar_columns=128, batch_rays=1024, eval_every=8, checkpoint_every=8,
+                samples=8, lobe_iterations=10, sun_candidates=12, seed=1)
+    base.update(kw)
+    return FitConfig(**base)
+
+
+def narrow_sun_rejection(choose):
+    """``choose_lighting`` made to reject its sun narrowly (gain 0.03, bar
+    0.05), so that the sun trial runs."""
+    def narrowly_rejected(state):
+        choice = choose(state)
+        sun = choice.report["sun"]
+        sun.update(gain=0.03, use_sun=False, direction=sun.get("direction", [0.3, 0.4, 0.866]))
+        choice.use_sun, choice.sun_direction, choice.sun_irradiance = False, None, 0.0
+        return choice
+    return narrowly_rejected
+
+
+@pytest.fixture(scope="module")
+def scene_path(tmp_path_factory):
+    """:func:`build`'s scene, once per test module (import it to use it)."""
+    d = tmp_path_factory.mktemp("fitscene")
+    return build(str(d), n_frames=5, width=48, height=16, columns=128)
 
 if __name__ == "__main__":
     import sys

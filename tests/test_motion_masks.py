@@ -16,19 +16,17 @@ import pytest
 import mitsuba as mi
 import drjit as dr
 
-from fit_scene import build
+from fit_scene import build, small_config
 from mi_invrgbl.errors import UserError
-from mi_invrgbl.fit.runner import FitConfig
 
 WIDTH, HEIGHT, COLUMNS = 48, 16, 128
 
 
 def _config(out, **kw):
-    base = dict(output=str(out), stage1_iterations=4, stage2_iterations=4, fit_width=24,
-                lidar_columns=64, batch_rays=256, eval_every=8, checkpoint_every=8,
-                samples=8, lobe_iterations=4, sun_candidates=12, seed=1)
+    base = dict(stage1_iterations=4, stage2_iterations=4, fit_width=24, lidar_columns=64,
+                batch_rays=256, lobe_iterations=4)
     base.update(kw)
-    return FitConfig(**base)
+    return small_config(out, **base)
 
 
 def _write_masks(root, camera_shape=(HEIGHT, WIDTH), lidar_shape=(64, COLUMNS)):
