@@ -72,7 +72,8 @@ NAMES = {"albedo": "albedo floor", "normal": "normal floor"}
 
 class Rows:
     """One frame's scored pixels as rows of a sparse system: pixel ``p``'s
-    albedo is ``sum(val[rows == p] * albedo[col[rows == p]])``."""
+    value (albedo, or normal) is ``sum(val[rows == p] * x[col[rows == p]])``
+    over the Gaussians solved for, plus ``fixed[p]`` from the others."""
 
     def __init__(self, rows, cols, vals, target, mask, material, fixed=None, kind="albedo"):
         self.rows, self.cols, self.vals = rows, cols, vals

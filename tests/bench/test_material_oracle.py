@@ -147,3 +147,25 @@ def test_the_normal_descent_keeps_unit_normals_and_finds_consistent_ones():
     x = af.descend_normals([r], start, 600, 0.02)
     assert np.allclose(np.linalg.norm(x, axis=1), 1.0) and np.array_equal(r.target, target)
     assert r.score(x) < 1.0 and np.allclose(x, truth, atol=3e-2)
+
+
+def test_an_edit_of_several_clouds_edits_each_and_copies_the_rest(tmp_path):
+    # write_edited with {ply name: edit}: each named cloud is edited, a cloud
+    # it does not name is copied as it is, and the fit is left unchanged.
+    import shutil
+    fit = _fit(tmp_path)
+    shutil.copy2(fit / "background.ply", fit / "object_0.ply")
+    shutil.copy2(fit / "background.ply", fit / "object_1.ply")
+    before = {p.name: p.read_bytes() for p in fit.iterdir()}
+
+    def grey(value):
+        def edit(cloud):
+            cloud.albedo = np.full_like(cloud.albedo, value)
+        return edit
+    target = pathlib.Path(mo.write_edited(str(fit), "albedo floor",
+                                          {"background.ply": grey(0.2), "object_0.ply": grey(0.7)}))
+    assert target.name == "fit_8min_albedo_floor"
+    assert np.allclose(read_ply(str(target / "background.ply")).albedo, 0.2)
+    assert np.allclose(read_ply(str(target / "object_0.ply")).albedo, 0.7)
+    assert (target / "object_1.ply").read_bytes() == before["object_1.ply"]
+    assert {p.name: p.read_bytes() for p in fit.iterdir()} == before
