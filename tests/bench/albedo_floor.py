@@ -140,7 +140,9 @@ def frame_rows(scene, frames, k, gt, offsets, grid, kind="albedo", R=np.eye(3)):
     row_of[mask] = np.arange(mask.sum())
     solved = np.isin(node, list(offsets))
     on = mask[ray] & solved
-    col = np.array([offsets[int(n)] for n in node[on]], np.int64) + prim[on]
+    col = prim[on].astype(np.int64)
+    for node_id, first in offsets.items():          # a few nodes, a million hits: by node
+        col[node[on] == node_id] += first
     target = truth_map(gt, kind, number).reshape(-1, 3)[mask].astype(np.float64)
     fixed = None
     if kind == "normal":
