@@ -1,7 +1,7 @@
 """Is it the fitted light that keeps a street's materials from the truth's?
 
     python tests/bench/light_refit.py FIT [--albedo VARIANT] [--normals VARIANT]
-        [--iterations 300] [--every 50] [--hold albedo,normal] [--json OUT] [--write NAME]
+        [--iterations 300] [--every 50] [--hold albedo,normal] [--bounces N] [--json OUT] [--write NAME]
 
 ``FIT`` is a finished fit (its ``checkpoints/latest.npz`` and the imported
 scene it names). The fit's stage 2 is rebuilt from that checkpoint, as
@@ -17,9 +17,14 @@ the sun's irradiance, the learned sun visibility, the roughness, the LiDAR
 albedo and response. Without ``--albedo`` and ``--normals`` the same steps
 run from the fit's own materials (the control: what more steps alone give).
 
+``--bounces N`` shades with N diffuse bounces instead of the fit's (the
+fitted scene's own count; the sky visibility is traced afresh for it).
+
 Printed every ``--every`` steps: the validation and held-out PSNR of stage
 2's own render (``score_stage2``, the lighting caches following the
-normals), the fitted sun's irradiance and the training colour loss.
+normals), the fitted sun's irradiance, the sky's mean radiance (its
+order-0 term) and the training steps' camera loss
+(the mean of the last ``--every`` steps' ``rgb`` term).
 
 Reading: if the held-out PSNR with the held materials climbs back to the
 fit's, the light and visibility the fit found are what ask for its
@@ -82,8 +87,9 @@ def fit_config(fit, meta):
     return config
 
 
-def open_stage2(fit):
-    """``(state, stage2)``: the finished fit's stage 2, rebuilt from its checkpoint."""
+def open_stage2(fit, bounces=None):
+    """``(state, stage2)``: the finished fit's stage 2, rebuilt from its
+    checkpoint (shading with ``bounces`` diffuse bounces if given, else the fit's)."""
     meta = read_meta(fit)
     try:
         metrics = json.loads(open(os.path.join(fit, "metrics.json")).read())
@@ -97,6 +103,9 @@ def open_stage2(fit):
     # load_checkpoint restores the progress log's rows into this (nothing is written).
     state.speed_log = SimpleNamespace(rows=[])
     load_checkpoint(state, fingerprint(state))
+    if bounces is not None:
+        # After the checkpoint's fingerprint check, which the fit's own count passed.
+        state.config.bounces = int(bounces)
     stage2, _ = freeze(state, initialise=False)
     return state, stage2
 
@@ -133,6 +142,16 @@ def write_fit(state, stage2, target):
         raise
 
 
+#: The order-0 real SH basis function: the sky's mean radiance is its coefficient times this.
+Y0 = 0.28209479177387814
+
+
+def sky_radiance(state):
+    """The fitted sky's mean radiance (its order-0 term), RGB."""
+    sh = np.array(dr.detach(state.params[state.sky_key]), np.float64).ravel()
+    return np.round(sh[:3] * Y0, 4).tolist()
+
+
 def sun_irradiance(state):
     return np.round(np.array(dr.detach(state.params[state.sun_key]), np.float64).ravel(), 3).tolist()
 
@@ -146,6 +165,9 @@ def main():
                     help="fields held where they start (comma-separated: albedo, normal, roughness)")
     ap.add_argument("--iterations", type=int, default=300, help="stage-2 steps to run")
     ap.add_argument("--every", type=int, default=50, help="score every this many steps")
+    ap.add_argument("--bounces", type=int,
+                    help="shade with this many diffuse bounces instead of the fit's (its sky visibility "
+                         "and bounce matrix are traced afresh)")
     ap.add_argument("--json", help="write the rows here")
     ap.add_argument("--write", metavar="NAME",
                     help="write the result as a fitted scene next to the fit (FIT_NAME), for eval")
@@ -161,7 +183,7 @@ def main():
         if os.path.exists(target):
             raise SystemExit("%s: exists; not overwritten" % target)
     t0 = time.perf_counter()
-    state, stage2 = open_stage2(args.fit)
+    state, stage2 = open_stage2(args.fit, args.bounces)
     fitted = score_stage2(stage2, state.held_out_frames, refresh=True)
     if args.albedo:
         replace_field(state, args.albedo, "albedo")
@@ -174,32 +196,33 @@ def main():
     print("%s: rebuilt in %.0f s; held-out PSNR as fitted %.2f dB; held %s; optimised %d arrays"
           % (args.fit, time.perf_counter() - t0, fitted[0], ",".join(sorted(hold)) or "nothing",
              len(freed)), flush=True)
-    print("| step | validation PSNR [dB] | held-out PSNR [dB] | sun irradiance | training loss | s |")
-    print("|---|---|---|---|---|---|")
+    print("| step | validation PSNR [dB] | held-out PSNR [dB] | sun irradiance | sky mean radiance | training camera loss | s |")
+    print("|---|---|---|---|---|---|---|")
     rows, losses, t = [], [], time.perf_counter()
     for it in range(args.iterations + 1):
         if it % args.every == 0 or it == args.iterations:
             val = score_stage2(stage2, state.validation_frames, refresh=True)[0]
             held = score_stage2(stage2, state.held_out_frames)[0]
             row = {"step": it, "validation_psnr": round(val, 3), "held_out_psnr": round(held, 3),
-                   "sun_irradiance": sun_irradiance(state),
-                   "training_loss": round(float(np.mean(losses[-args.every:])), 5) if losses else None,
+                   "sun_irradiance": sun_irradiance(state), "sky_radiance": sky_radiance(state),
+                   "training_rgb_loss": round(float(np.mean(losses[-args.every:])), 5) if losses else None,
                    "seconds": round(time.perf_counter() - t, 1)}
             rows.append(row)
-            print("| %d | %.2f | %.2f | %s | %s | %.0f |" % (
-                it, val, held, row["sun_irradiance"],
-                "-" if row["training_loss"] is None else "%.4f" % row["training_loss"],
+            print("| %d | %.2f | %.2f | %s | %s | %s | %.0f |" % (
+                it, val, held, row["sun_irradiance"], row["sky_radiance"],
+                "-" if row["training_rgb_loss"] is None else "%.4f" % row["training_rgb_loss"],
                 row["seconds"]), flush=True)
         if it == args.iterations:
             break
-        total, _, _ = stage2.iteration(it)
-        losses.append(total)
+        total, terms, _ = stage2.iteration(it)
+        losses.append(terms.get("rgb", total))
     if target:
         write_fit(state, stage2, target)
         print("written: %s" % target)
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"fit": args.fit, "albedo": args.albedo, "normals": args.normals,
+                       "bounces": state.config.bounces,
                        "hold": sorted(hold), "fitted_held_out_psnr": round(fitted[0], 3),
                        "rows": rows}, f, indent=1)
 
