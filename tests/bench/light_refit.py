@@ -121,8 +121,7 @@ def replace_field(state, variant, name):
         if len(values) != node.count:
             raise SystemExit("%s: %d Gaussians, the fit's node '%s' %d"
                              % (path, len(values), node_name, node.count))
-        stored = field.to_storage(values) if field.storage != "unit" else values
-        node.values[field.variable] = mi.Float(np.ascontiguousarray(stored, np.float32).ravel())
+        node.values[field.variable] = mi.Float(np.ascontiguousarray(field.to_storage(values), np.float32).ravel())
 
 
 def write_fit(state, stage2, target):

@@ -81,14 +81,12 @@ def vector3f(a):
 SunRays = namedtuple("SunRays", "hit origin sun_fit to_gt true_vis vis")
 
 
-def sun_rays(scene, gt_scene, frames, k, gt, cams, sun_gt, R):
-    """Per pixel of frame ``k``, shadow rays towards the sun ``sun_gt`` from
-    SHADOW_OFFSET above the true surface point: ``hit`` (the truth sees a
-    surface), ``origin`` and ``sun_fit`` (the rays in the fitted scene's
-    world), ``to_gt`` (4x4, the fitted scene's world into the truth's),
-    ``true_vis`` (bool: facing the sun and open to it through the truth's
-    meshes) and ``vis`` (the fitted Gaussians' transmittance, 0 where the
-    surface faces away)."""
+def true_surface(scene, frames, k, gt, cams):
+    """Per pixel of frame ``k`` (``scene``'s sensor placed there): ``hit``
+    (the truth sees a surface), the true surface point in the fitted
+    scene's world and in the truth's, the truth's normal (its map, the
+    truth's world) and ``to_gt`` (4x4, the fitted scene's world into the
+    truth's)."""
     rec, n = frames[k], source_number(frames[k])
     sensor, _ = set_frame(scene, frames, k)
     w, h = sensor.film().size()
@@ -97,13 +95,23 @@ def sun_rays(scene, gt_scene, frames, k, gt, cams, sun_gt, R):
     depth = read_map(str(gt / "maps" / ("%06d_depth.exr" % n)))
     depth = (depth[..., 0] if depth.ndim == 3 else depth).reshape(-1)
     normal = read_map(str(gt / "maps" / ("%06d_normal.exr" % n))).reshape(-1, 3)
-    hit = depth > 0
     # The maps' depth is along the camera's axis; the scene's and the
     # truth's worlds differ by the rigid motion between their camera poses.
     cam = np.asarray(rec.camera_to_world, np.float64)
     p_fit = o + d * (depth / np.maximum(d @ cam[:3, 2], 1e-9))[:, None]
     T = np.linalg.inv(scene_from_truth(rec, cams))
-    p_gt = p_fit @ T[:3, :3].T + T[:3, 3]
+    return depth > 0, p_fit, p_fit @ T[:3, :3].T + T[:3, 3], normal, T
+
+
+def sun_rays(scene, gt_scene, frames, k, gt, cams, sun_gt, R):
+    """Per pixel of frame ``k``, shadow rays towards the sun ``sun_gt`` from
+    SHADOW_OFFSET above the true surface point: ``hit`` (the truth sees a
+    surface), ``origin`` and ``sun_fit`` (the rays in the fitted scene's
+    world), ``to_gt`` (4x4, the fitted scene's world into the truth's),
+    ``true_vis`` (bool: facing the sun and open to it through the truth's
+    meshes) and ``vis`` (the fitted Gaussians' transmittance, 0 where the
+    surface faces away)."""
+    hit, p_fit, p_gt, normal, T = true_surface(scene, frames, k, gt, cams)
     sun_fit = R @ sun_gt
     facing = (normal @ sun_gt) > 0
     shadow = mi.Ray3f(vector3f(p_gt + SHADOW_OFFSET * normal), vector3f(np.tile(sun_gt, (len(p_gt), 1))))

@@ -9,8 +9,8 @@ with the albedo right or not. This bench measures the sky half of that,
 with the truth's own surface points and normals so that neither the
 fitted normals nor the fitted albedo enter: for every pixel of the
 selected frames where the truth sees a surface, ``--directions``
-cosine-weighted directions about the true normal (a Fibonacci set turned
-per pixel) leave SHADOW_OFFSET above the true surface point, as the
+cosine-weighted directions about the true normal (the integrator's
+Fibonacci set, turned at random per pixel) leave SHADOW_OFFSET above the true surface point, as the
 integrator's shadow rays leave a Gaussian, and are traced through the
 truth's meshes (open or blocked) and through the fitted Gaussians
 (their transmittance). The mean over the directions is the share of the
@@ -40,19 +40,15 @@ import mi_invrgbl  # noqa: E402,F401
 from mi_invrgbl.eval.ground_truth import gt_alignment, source_number  # noqa: E402
 from mi_invrgbl.eval.inputs import read_map  # noqa: E402
 from mi_invrgbl.physics import hits as hitlib  # noqa: E402
-from mi_invrgbl.physics.lighting import SHADOW_OFFSET, transmittance  # noqa: E402
-from mi_invrgbl.scene.posing import set_frame  # noqa: E402
-from mi_invrgbl.synthetic.groundtruth import camera_rays, rows  # noqa: E402
+from mi_invrgbl.physics.lighting import SHADOW_OFFSET, fibonacci_direction, transmittance  # noqa: E402
 from street_truth import open_fit, scene_from_truth  # noqa: E402
-from relight_breakdown import MIN_SHARE, vector3f  # noqa: E402
+from relight_breakdown import MIN_SHARE, true_surface, vector3f  # noqa: E402
 
 
 def cosine_directions(count):
-    """``count`` cosine-weighted unit directions about +z (a Fibonacci set)."""
-    i = np.arange(count) + 0.5
-    r = np.sqrt(i / count)
-    phi = i * np.pi * (3.0 - np.sqrt(5.0))
-    return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1.0 - r * r, 0.0))], 1)
+    """The integrator's ``count`` cosine-weighted Fibonacci directions about +z, unturned."""
+    local = fibonacci_direction(dr.arange(mi.Float, count), count, mi.Float(0.0))
+    return np.array(local, np.float64).T     # (3, count) -> (count, 3)
 
 
 def frames_to_world(normal, turn):
@@ -65,7 +61,7 @@ def frames_to_world(normal, turn):
     return c * t + s * b, -s * t + c * b
 
 
-def camera_field_top(frames, cams, gt, R):
+def training_cameras(frames, cams):
     """The training cameras' (centre, forward, up) in the truth's world."""
     out = []
     for rec in frames.frames:
@@ -100,25 +96,18 @@ def collect(fit, frames_spec, count):
     rng = np.random.default_rng(0)
     nodes = hitlib.gaussian_nodes(scene)
     cols = {k: [] for k in ("mesh", "true", "fit", "missed_height", "missed_distance", "missed_seen")}
-    cameras = camera_field_top(frames, cams, gt, R)
+    cameras = training_cameras(frames, cams)
     # The vertical half field above the axis, from the intrinsics (any resolution).
     tan_half = float(frames.camera.cy) / float(frames.camera.fy)
     for k in positions:
-        rec, n = frames[k], source_number(frames[k])
-        sensor, _ = set_frame(scene, frames, k)
-        w, h = (int(v) for v in sensor.film().size())
-        ray = camera_rays(sensor, w, h)
-        d, o = rows(ray.d), rows(ray.o)
-        depth = read_map(str(gt / "maps" / ("%06d_depth.exr" % n)))
-        depth = (depth[..., 0] if depth.ndim == 3 else depth).reshape(-1)
-        normal = read_map(str(gt / "maps" / ("%06d_normal.exr" % n))).reshape(-1, 3).astype(np.float64)
+        n = source_number(frames[k])
+        hit, p_fit, p_gt, normal, T = true_surface(scene, frames, k, gt, cams)
+        normal = normal.astype(np.float64)
         mesh = read_map(str(gt / "maps" / ("%06d_mesh_id.exr" % n)))
         mesh = (mesh[..., 0] if mesh.ndim == 3 else mesh).reshape(-1).astype(int)
-        keep = (depth > 0) & (np.linalg.norm(normal, axis=1) > 0.5)
-        cam = np.asarray(rec.camera_to_world, np.float64)
-        p_fit = (o + d * (depth / np.maximum(d @ cam[:3, 2], 1e-9))[:, None])[keep]
-        T = np.linalg.inv(scene_from_truth(rec, cams))
-        p_gt = p_fit @ T[:3, :3].T + T[:3, 3]
+        keep = hit & (np.linalg.norm(normal, axis=1) > 0.5)
+        p_fit, p_gt = p_fit[keep], p_gt[keep]
+        cam = np.asarray(frames[k].camera_to_world, np.float64)
         nrm = normal[keep] / np.linalg.norm(normal[keep], axis=1, keepdims=True)
         tu, tv = frames_to_world(nrm, rng.uniform(0, 2 * np.pi, len(nrm)))
         o_gt = p_gt + SHADOW_OFFSET * nrm
