@@ -54,12 +54,10 @@ def render(d, spp, seed=0):
     return np.array(mi.render(mi.load_dict(d), spp=spp, seed=seed))
 
 
-def test_one_bounce_between_gaussians_matches_path_tracing():
-    g0, g1 = render(gaussian_corner(0), 4), render(gaussian_corner(1), 4)
-    m2, m3 = render(mesh_corner(2), 2048), render(mesh_corner(3), 2048, seed=1)
-    # Pixels well inside both surfaces (opaque Gaussians, mesh hit), where
-    # the layers' fading borders do not matter: depth agrees within 2 cm.
-    mesh = mi.load_dict(mesh_corner(2))
+def inside_pixels(mesh_scene, g0):
+    """Pixels well inside both surfaces (opaque Gaussians, mesh hit), where
+    the layers' fading borders do not matter."""
+    mesh = mi.load_dict(mesh_scene)
     o, d = pixel_rays(mesh)
     si = mesh.ray_intersect(mi.Ray3f(mi.Point3f(o.reshape(-1, 3).T), mi.Vector3f(d.reshape(-1, 3).T)))
     p = np.array(si.p).T.reshape(o.shape)
@@ -70,6 +68,13 @@ def test_one_bounce_between_gaussians_matches_path_tracing():
     inside &= (p[..., 1] > -0.8) & (p[..., 2] < 1.8)
     inside &= (g0[..., ALPHA] > 0.999) & (np.abs(g0[..., DEPTH] - np.array(si.t).reshape(o.shape[:2])) < 0.05)
     assert inside.mean() > 0.3
+    return inside
+
+
+def test_one_bounce_between_gaussians_matches_path_tracing():
+    g0, g1 = render(gaussian_corner(0), 4), render(gaussian_corner(1), 4)
+    m2, m3 = render(mesh_corner(2), 2048), render(mesh_corner(3), 2048, seed=1)
+    inside = inside_pixels(mesh_corner(2), g0)
     bounce_g = (g1 - g0)[inside][:, RGB]
     bounce_m = (m3 - m2)[inside][:, RGB]
     direct_m = m2[inside][:, RGB]
@@ -94,11 +99,19 @@ def test_one_bounce_between_gaussians_matches_path_tracing():
     assert np.all(np.abs(total) < 0.03)
 
 
-def test_bounce_gradient_matches_finite_differences():
-    """The floor's colour depends on the wall's albedo only through the bounce."""
-    scene = mi.load_dict(gaussian_corner(1, samples=16))
+@pytest.mark.parametrize("coated,key", [(False, "wall.albedo"), (True, "wall.albedo"),
+                                        (True, "wall.roughness")])
+def test_bounce_gradient_matches_finite_differences(coated, key):
+    """The floor's colour depends on the wall's albedo only through the
+    bounce; under a coat, on the wall's roughness too (its coat lets the
+    bounce out), besides the wall's own glossy reflection, which the floor's
+    pixels do not show."""
+    d = gaussian_corner(1, samples=16)
+    if coated:
+        d = coated_corner_gaussians(1)
+        d["integrator"]["samples"] = 16
+    scene = mi.load_dict(d)
     params = mi.traverse(scene)
-    key = "wall.albedo"
     assert key in params, sorted(params.keys())
     base = mi.Float(params[key])
     # Floor pixels only: below the wall's lowest point in the image.
@@ -116,9 +129,10 @@ def test_bounce_gradient_matches_finite_differences():
     f = objective()
     dr.backward(f)
     grad = np.array(dr.grad(params[key]))
-    # Along all wall Gaussians' red channel at once (one direction, two renders).
+    # Along all wall Gaussians' red channel (or roughness) at once (one
+    # direction, two renders).
     direction = np.zeros(dr.width(base), np.float32)
-    direction[0::3] = 1.0
+    direction[0::3 if key.endswith("albedo") else 1] = 1.0
     ad = float(grad @ direction)
     eps = 0.05
     vals = []
@@ -130,8 +144,11 @@ def test_bounce_gradient_matches_finite_differences():
     params[key] = base
     params.update()
     fd = (vals[0] - vals[1]) / (2 * eps)
-    print("d(floor red)/d(wall red albedo): AD %.5g, FD %.5g" % (ad, fd))
-    assert fd > 0                      # more red on the wall, more red bounced on the floor
+    print("d(floor red)/d(%s): AD %.5g, FD %.5g" % (key, ad, fd))
+    if key.endswith("albedo"):
+        assert fd > 0                  # more red on the wall, more red bounced on the floor
+    else:
+        assert fd < 0                  # a rougher coat lets less of the wall's light out
     # 3 %, as for the integrator's other material gradients (test_invrgbl_gradients).
     assert abs(ad - fd) <= 0.03 * abs(fd)
 
@@ -151,3 +168,44 @@ def test_nothing_to_bounce_off_renders_as_direct_light():
                     "sensor": camera([0, -2, 2], [0, 0, 0], size=16)}, 2) for b in (0, 1)]
     assert imgs[0][..., ALPHA].max() > 0.5
     assert np.allclose(imgs[0], imgs[1], rtol=1e-6, atol=1e-7)
+
+
+COAT_ROUGHNESS = 0.9
+
+
+def coated_corner_gaussians(bounces):
+    d = gaussian_corner(bounces)
+    for name in ("floor", "wall"):
+        n = d[name]["roughness"].shape[0]
+        d[name]["roughness"] = mi.TensorXf(np.full(n, COAT_ROUGHNESS, np.float32))
+    d["integrator"] = dict(d["integrator"], diffuse_fresnel=True, f0=0.04, shadowing="smith")
+    return d
+
+
+def coated_corner_meshes(max_depth):
+    d = mesh_corner(max_depth)
+    for name, albedo in (("floor", ALBEDO_FLOOR), ("wall", ALBEDO_WALL)):
+        d[name]["bsdf"] = {"type": "roughplastic", "distribution": "ggx", "alpha": COAT_ROUGHNESS,
+                           "int_ior": 1.5, "ext_ior": 1.0, "specular_reflectance": 0.0,
+                           "diffuse_reflectance": {"type": "rgb", "value": list(albedo)}}
+    return d
+
+
+def test_coated_bounce_leaves_its_source_through_the_coat():
+    """Under a coat (``diffuse_fresnel``) the light a Gaussian passes on
+    leaves it through its coat, as its light towards the camera does, and
+    enters the receiver through its coat, as direct light does. The
+    reference is the ``roughplastic`` corner with its specular lobe off
+    (``specular_reflectance`` 0; its diffuse lobe keeps the coat), since
+    the bounce passes on diffuse light only. Measured: 6-7 % high (3.8x
+    before the coat was applied to the bounce)."""
+    g0, g1 = render(coated_corner_gaussians(0), 4), render(coated_corner_gaussians(1), 4)
+    m2, m3 = render(coated_corner_meshes(2), 2048), render(coated_corner_meshes(3), 2048, seed=1)
+    inside = inside_pixels(coated_corner_meshes(2), g0)
+    bounce_g = (g1 - g0)[inside][:, RGB].mean(0)
+    bounce_m = (m3 - m2)[inside][:, RGB].mean(0)
+    share = bounce_m / m2[inside][:, RGB].mean(0)
+    rel = bounce_g / bounce_m - 1
+    print("coated bounce share of direct %s; rel err %s" % (share, rel))
+    assert np.all(share > 0.02)
+    assert np.all(np.abs(rel) < 0.15)

@@ -547,7 +547,8 @@ class Stage2:
             # Bounce light at the start: stage 1's colours are the radiance
             # the Gaussians send out, so W c is what they pass on (it does
             # not scale with the light level chosen below).
-            bounce = (shading_init.as_rows(lighting.pass_on(mi.Color3f(colour.T.astype(np.float32))))
+            bounce = (shading_init.as_rows(lighting.pass_on(mi.Color3f(colour.T.astype(np.float32)),
+                                                             through_coat=False))
                       if lighting.bounces > 0 else np.zeros_like(D))
             sun_term = np.zeros_like(D)
             seen_w = shading_init.seen_weight(

@@ -35,10 +35,10 @@ read back with bilinear interpolation, differentiable in the cosine and the
 roughness. ``tests/test_coat.py`` checks the tables against Mitsuba's own
 ``roughplastic`` and the smooth limit against the Fresnel equations.
 
-The bounce light one Gaussian passes to another takes the coat on the way
-out only (the integrator weights all of a Gaussian's diffuse light towards
-the viewer), not on the way in (:mod:`.lighting`): it is a small share of
-the light, and the way in would need each pair's angles.
+The bounce light one Gaussian passes to another leaves the blocker through
+its coat (:func:`way_out` at the angle towards the receiver) and enters the
+receiver through its own (:func:`transmission` at the angle it arrives), as
+direct light does (:meth:`.lighting.GaussianLighting.pass_on`).
 """
 
 from __future__ import annotations

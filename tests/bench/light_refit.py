@@ -1,6 +1,6 @@
 """Is it the fitted light that keeps a street's materials from the truth's?
 
-    python tests/bench/light_refit.py FIT [--albedo VARIANT] [--normals VARIANT]
+    python tests/bench/light_refit.py FIT [--albedo VARIANT] [--normals VARIANT] [--roughness VARIANT]
         [--iterations 300] [--every 50] [--hold albedo,normal] [--bounces N] [--json OUT] [--write NAME]
 
 ``FIT`` is a finished fit (its ``checkpoints/latest.npz`` and the imported
@@ -11,7 +11,8 @@ if it exists; written under a temporary name and renamed), for ``eval``. The Gau
 albedo is then replaced by the one in ``--albedo VARIANT`` (a fitted scene
 folder of the same fit with edited clouds, such as ``albedo_floor.py
 --write``'s ``FIT_albedo_floor``) and their normals by ``--normals
-VARIANT``'s (``FIT_normal_floor``); the fields named by ``--hold`` are held
+VARIANT``'s (``FIT_normal_floor``), and their roughness by ``--roughness
+VARIANT``'s (``material_oracle.py --write``'s ``FIT_true_roughness``); the fields named by ``--hold`` are held
 there while stage 2 runs ``--iterations`` more steps on the rest: the sky,
 the sun's irradiance, the learned sun visibility, the roughness, the LiDAR
 albedo and response. Without ``--albedo`` and ``--normals`` the same steps
@@ -63,7 +64,7 @@ from mi_invrgbl.physics.gaussian_ply import read_ply  # noqa: E402
 from normal_oracle import variant_folder  # noqa: E402
 
 #: Fields a variant may replace: the fit's name -> the cloud's attribute.
-REPLACEABLE = {"albedo": "albedo", "normal": "normals"}
+REPLACEABLE = {"albedo": "albedo", "normal": "normals", "roughness": "roughness"}
 
 
 def read_meta(fit):
@@ -160,6 +161,8 @@ def main():
     ap.add_argument("fit", help="a finished fit's folder")
     ap.add_argument("--albedo", help="fitted-scene folder whose clouds' albedo replaces the fit's")
     ap.add_argument("--normals", help="fitted-scene folder whose clouds' normals replace the fit's")
+    ap.add_argument("--roughness", help="fitted-scene folder whose clouds' roughness replaces the fit's "
+                    "(e.g. material_oracle.py --write's FIT_true_roughness)")
     ap.add_argument("--hold", default="albedo,normal",
                     help="fields held where they start (comma-separated: albedo, normal, roughness)")
     ap.add_argument("--iterations", type=int, default=300, help="stage-2 steps to run")
@@ -190,6 +193,8 @@ def main():
         replace_field(state, args.normals, "normal")
         # The lighting caches' sky directions turn with the normals.
         stage2.lighting_stale = True
+    if args.roughness:
+        replace_field(state, args.roughness, "roughness")
     stage2.build_optimizer(only=lambda v: not (isinstance(v, GaussianVariable) and v.field.name in hold))
     freed = sorted(stage2.opt.variables)
     print("%s: rebuilt in %.0f s; held-out PSNR as fitted %.2f dB; held %s; optimised %d arrays"
@@ -220,7 +225,7 @@ def main():
         print("written: %s" % target)
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"fit": args.fit, "albedo": args.albedo, "normals": args.normals,
+            json.dump({"fit": args.fit, "albedo": args.albedo, "normals": args.normals, "roughness": args.roughness,
                        "bounces": state.config.bounces,
                        "hold": sorted(hold), "fitted_held_out_psnr": round(fitted[0], 3),
                        "rows": rows}, f, indent=1)

@@ -87,3 +87,22 @@ def test_a_variant_of_other_gaussians_is_refused(fitted, tmp_path):
 def test_an_unfinished_fit_is_refused(tmp_path):
     with pytest.raises(SystemExit, match="no checkpoint"):
         lr.read_meta(str(tmp_path))
+
+
+def test_roughness_taken_from_a_variant_is_held_while_the_light_moves(fitted):
+    def rough(cloud):
+        cloud.roughness = np.full_like(cloud.roughness, 0.85)
+    variant = write_edited(str(fitted), "rough", rough)
+    state, stage2 = lr.open_stage2(str(fitted))
+    node = state.model.nodes["background"]
+    key = BY_NAME["roughness"].variable
+    assert not np.allclose(np.array(node.values[key]), 0.85)
+    lr.replace_field(state, variant, "roughness")
+    stage2.build_optimizer(only=lambda v: not (isinstance(v, GaussianVariable)
+                                               and v.field.name == "roughness"))
+    sky0 = np.array(state.params[state.sky_key])
+    for it in range(3):
+        stage2.iteration(it)
+    stage2.commit()
+    assert np.allclose(np.array(node.values[key]), 0.85, atol=1e-6)
+    assert not np.allclose(np.array(state.params[state.sky_key]), sky0)
