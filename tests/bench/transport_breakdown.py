@@ -2,9 +2,10 @@
 
     python tests/bench/transport_breakdown.py FIT_DIR [FIT_DIR ...] [--frames held-out] [--spp 64] [--json OUT]
 
-A fit whose materials are right (``light_refit.py --write`` with the
-albedo and normals of ``albedo_floor.py`` / ``normal_floor.py`` held) still
-asks for a sun 1.4-1.8x and a sky 0.5-0.6x the truth's: under the truth's
+Given right materials (``light_refit.py --write`` with the albedo and
+normals ``albedo_floor.py --write`` solves held), a fit's stage 2 can still
+ask for a light far from the truth's (a sun 1.4-1.8x and a sky 0.5-0.6x
+on the main job's coated fit, before the coat's bounce): under the truth's
 light its shadowed surfaces come out too bright against its sunlit ones.
 This script finds which part of the shading does that. The truth's scene
 (``gt/scene_time_a.xml``, Mitsuba's ``path``) and the fitted scene with the
