@@ -738,7 +738,8 @@ class GaussianLighting:
         roughness on the way in (:func:`~mi_invrgbl.physics.coat.transmission`
         of its angle to the normal); the way out depends on the viewer and is
         the integrator's (:func:`~mi_invrgbl.physics.coat.way_out`). The
-        bounce light a Gaussian receives is not weighted on its way in.
+        bounce light leaves its source through the source's coat and enters
+        through the receiver's (:meth:`pass_on`).
 
         ``light_transmittance``: per light of :func:`point_lights` (same
         order), ``None`` or a (G,) factor on that light's visibility: the
