@@ -106,11 +106,7 @@ def test_bounce_gradient_matches_finite_differences(coated, key):
     bounce; under a coat, on the wall's roughness too (its coat lets the
     bounce out), besides the wall's own glossy reflection, which the floor's
     pixels do not show."""
-    d = gaussian_corner(1, samples=16)
-    if coated:
-        d = coated_corner_gaussians(1)
-        d["integrator"]["samples"] = 16
-    scene = mi.load_dict(d)
+    scene = mi.load_dict((coated_corner_gaussians if coated else gaussian_corner)(1, samples=16))
     params = mi.traverse(scene)
     assert key in params, sorted(params.keys())
     base = mi.Float(params[key])
@@ -173,8 +169,8 @@ def test_nothing_to_bounce_off_renders_as_direct_light():
 COAT_ROUGHNESS = 0.9
 
 
-def coated_corner_gaussians(bounces):
-    d = gaussian_corner(bounces)
+def coated_corner_gaussians(bounces, samples=64):
+    d = gaussian_corner(bounces, samples=samples)
     for name in ("floor", "wall"):
         n = d[name]["roughness"].shape[0]
         d[name]["roughness"] = mi.TensorXf(np.full(n, COAT_ROUGHNESS, np.float32))

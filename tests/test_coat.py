@@ -124,13 +124,14 @@ def test_a_coated_layer_under_a_constant_sky_matches_roughplastic(elevation, rou
     specular reflection alone (albedo 0) 0.85-0.99 of the reference, the
     total with albedo 0.3 0.96-1.01 (the M = 64 quadrature of the lobe)."""
     from test_invrgbl import ALPHA, camera, ground_hits, layer, render
+    from mi_invrgbl.physics.sh import Y0
     radiance = 0.5
     e = np.radians(elevation)
     cam = camera([0, -4 * np.cos(e), 4 * np.sin(e)], [0, 0, 0], fov=10)
     ratios = []
     for albedo in (0.0, 0.3):
         g, _ = layer(extent=4.0, albedo=(albedo,) * 3, roughness=roughness)
-        sky = {"type": "shsun", "sh": "%f %f %f" % ((radiance / 0.28209479177387814,) * 3),
+        sky = {"type": "shsun", "sh": "%f %f %f" % ((radiance / Y0,) * 3),
                "sun_direction": [0, 0, 1]}
         img_g, scene_g = render({"integrator": {"type": "invrgbl", "samples": 64, "shadowing": "smith",
                                                 "diffuse_fresnel": True},

@@ -819,13 +819,11 @@ class GaussianLighting:
         # v_i L_sky(w_i): differentiable in the sky's coefficients and normals.
         self.sky_radiance = environment_radiance(scene, self.sky_dirs) * cache.sky_visibility
         sky_in = self.sky_radiance
-        coat_roughness = None
         #: Per Gaussian, the roughness of its coat (``diffuse_fresnel``), else None.
-        self.coat_roughness = None
+        self.coat_roughness = coat_roughness = None
         if diffuse_fresnel:
-            coat_roughness = hitlib.gather_attribute(nodes, "roughness", table.ids, table.prims,
-                                                     mi.Bool(True))
-            self.coat_roughness = coat_roughness
+            self.coat_roughness = coat_roughness = hitlib.gather_attribute(
+                nodes, "roughness", table.ids, table.prims, mi.Bool(True))
         if diffuse_fresnel and M:
             # The samples' local z is their cosine to the normal.
             sky_in = sky_in * coat.transmission(
@@ -890,8 +888,12 @@ class GaussianLighting:
             tau_in = dr.gather(mi.Float, self.coat_roughness, cache.bounce_target)
             weight = weight * coat.transmission(cache.bounce_cos_target, tau_in, self.f0)
             if through_coat:
+                # way_out = transmission(cos) * inner_scale(roughness): the
+                # second depends on the source alone, so it is applied once
+                # per Gaussian, not once per entry (there are far more).
+                leaving = leaving * coat.inner_scale(self.coat_roughness, self.f0)
                 tau_out = dr.gather(mi.Float, self.coat_roughness, cache.bounce_source)
-                weight = weight * coat.way_out(cache.bounce_cos_source, tau_out, self.f0)
+                weight = weight * coat.transmission(cache.bounce_cos_source, tau_out, self.f0)
         passed = dr.gather(mi.Color3f, leaving, cache.bounce_source) * weight
         for c in range(3):
             dr.scatter_reduce(dr.ReduceOp.Add, out[c], passed[c], cache.bounce_target)

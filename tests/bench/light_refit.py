@@ -61,6 +61,7 @@ from mi_invrgbl.fit.runner import freeze  # noqa: E402
 from mi_invrgbl.fit.variables import GaussianVariable  # noqa: E402
 from mi_invrgbl.physics.fields import BY_NAME  # noqa: E402
 from mi_invrgbl.physics.gaussian_ply import read_ply  # noqa: E402
+from mi_invrgbl.physics import sh as sh_basis  # noqa: E402
 from normal_oracle import variant_folder  # noqa: E402
 
 #: Fields a variant may replace: the fit's name -> the cloud's attribute.
@@ -142,14 +143,10 @@ def write_fit(state, stage2, target):
         raise
 
 
-#: The order-0 real SH basis function: the sky's mean radiance is its coefficient times this.
-Y0 = 0.28209479177387814
-
-
 def sky_radiance(state):
     """The fitted sky's mean radiance (its order-0 term), RGB."""
     sh = np.array(dr.detach(state.params[state.sky_key]), np.float64).ravel()
-    return np.round(sh[:3] * Y0, 4).tolist()
+    return np.round(sh[:3] * sh_basis.Y0, 4).tolist()
 
 
 def sun_irradiance(state):
@@ -164,7 +161,8 @@ def main():
     ap.add_argument("--roughness", help="fitted-scene folder whose clouds' roughness replaces the fit's "
                     "(e.g. material_oracle.py --write's FIT_true_roughness)")
     ap.add_argument("--hold", default="albedo,normal",
-                    help="fields held where they start (comma-separated: albedo, normal, roughness)")
+                    help="fields held where they start (comma-separated: albedo, normal, roughness, "
+                         "sun_visibility, lidar_albedo)")
     ap.add_argument("--iterations", type=int, default=300, help="stage-2 steps to run")
     ap.add_argument("--every", type=int, default=50, help="score every this many steps")
     ap.add_argument("--bounces", type=int,

@@ -40,6 +40,7 @@ variant_choice.from_argv()
 
 import argparse  # noqa: E402
 import json  # noqa: E402
+import xml.etree.ElementTree as ET  # noqa: E402
 from collections import namedtuple  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -75,9 +76,14 @@ def truth_terms(gt, numbers, spp):
     """Per frame number and term: the truth's linear RGB (H*W, 3)."""
     traj = json.loads((gt / "trajectory.json").read_text())
     cams = np.asarray(traj["world_from_cam"]) @ trajectory.KITTI_FROM_MITSUBA
-    scene = mi.load_file(str(gt / "scene_time_a.xml"))
-    depth = scene.integrator().max_depth if hasattr(scene.integrator(), "max_depth") else 4
-    integ = {True: mi.load_dict({"type": "path", "max_depth": int(depth)}),
+    xml = gt / "scene_time_a.xml"
+    scene = mi.load_file(str(xml))
+    # The path length the truth's images were rendered with (Mitsuba's
+    # integrator does not expose it).
+    depth = ET.parse(xml).getroot().find("integrator/integer[@name='max_depth']")
+    if depth is None:
+        raise SystemExit("%s: no max_depth on its integrator" % xml)
+    integ = {True: mi.load_dict({"type": "path", "max_depth": int(depth.get("value"))}),
              False: mi.load_dict({"type": "path", "max_depth": 2})}
     poser = FramePoser(scene, np.asarray(traj["world_from_moving_car"]), ())
     params = mi.traverse(scene)
