@@ -63,6 +63,7 @@ from mi_invrgbl.physics.fields import BY_NAME  # noqa: E402
 from mi_invrgbl.physics.gaussian_ply import read_ply  # noqa: E402
 from mi_invrgbl.physics import sh as sh_basis  # noqa: E402
 from normal_oracle import variant_folder  # noqa: E402
+from street_truth import refuse_existing, write_json  # noqa: E402
 
 #: Fields a variant may replace: the fit's name -> the cloud's attribute.
 REPLACEABLE = {"albedo": "albedo", "normal": "normals", "roughness": "roughness"}
@@ -172,6 +173,7 @@ def main():
     ap.add_argument("--write", metavar="NAME",
                     help="write the result as a fitted scene next to the fit (FIT_NAME), for eval")
     args = ap.parse_args()
+    refuse_existing(args.json)
     hold = {h.strip() for h in args.hold.split(",") if h.strip()}
     unknown = hold - set(BY_NAME)
     if unknown:
@@ -222,11 +224,10 @@ def main():
         write_fit(state, stage2, target)
         print("written: %s" % target)
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump({"fit": args.fit, "albedo": args.albedo, "normals": args.normals, "roughness": args.roughness,
+        write_json(args.json, {"fit": args.fit, "albedo": args.albedo, "normals": args.normals, "roughness": args.roughness,
                        "bounces": state.config.bounces,
                        "hold": sorted(hold), "fitted_held_out_psnr": round(fitted[0], 3),
-                       "rows": rows}, f, indent=1)
+                       "rows": rows})
 
 
 if __name__ == "__main__":

@@ -62,7 +62,7 @@ from mi_invrgbl.physics.host_arrays import jit_array  # noqa: E402
 from mi_invrgbl.physics.lighting import SHADOW_OFFSET, transmittance  # noqa: E402
 from mi_invrgbl.scene.posing import set_frame  # noqa: E402
 from mi_invrgbl.synthetic.groundtruth import camera_rays, rows  # noqa: E402
-from street_truth import open_fit, scene_from_truth  # noqa: E402
+from street_truth import open_fit, refuse_existing, scene_from_truth  # noqa: E402
 
 #: Materials below this share of the pixels are pooled into "other".
 MIN_SHARE = 0.01
@@ -243,6 +243,7 @@ def main():
     ap.add_argument("--spp", type=int, default=EVAL_SPP,
                     help="camera samples per pixel (default: eval's, %d)" % EVAL_SPP)
     args = ap.parse_args()
+    refuse_existing(args.save)
     for fit in args.fits:
         data, names = collect(fit, args.frames, args.spp)
         report(fit, data, names)

@@ -41,7 +41,7 @@ from mi_invrgbl.eval.ground_truth import gt_alignment, source_number  # noqa: E4
 from mi_invrgbl.eval.inputs import read_map  # noqa: E402
 from mi_invrgbl.physics import hits as hitlib  # noqa: E402
 from mi_invrgbl.physics.lighting import SHADOW_OFFSET, fibonacci_direction, transmittance  # noqa: E402
-from street_truth import open_fit, scene_from_truth  # noqa: E402
+from street_truth import open_fit, refuse_existing, scene_from_truth, write_json  # noqa: E402
 from relight_breakdown import MIN_SHARE, true_surface, vector3f  # noqa: E402
 
 
@@ -175,13 +175,13 @@ def main():
     ap.add_argument("--directions", type=int, default=32, help="cosine-weighted directions per pixel")
     ap.add_argument("--json", help="write the tables here")
     args = ap.parse_args()
+    refuse_existing(args.json)
     record = {}
     for fit in args.fits:
         data, names = collect(fit, args.frames, args.directions)
         record[fit] = report(fit, data, names, args.directions)
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(record, f, indent=1)
+        write_json(args.json, record)
 
 
 if __name__ == "__main__":

@@ -99,3 +99,18 @@ def open_fit(fit, frames_spec="held-out"):
         sys.exit("%s: no ground truth next to the frames (a make-scene street import)" % fit)
     return frames, Path(frames.ground_truth), select_frames(frames, frames_spec), \
         load_scene(str(scene_xml))
+
+
+def refuse_existing(*paths):
+    """Exit with one line if an output file a bench was asked for exists:
+    a bench writes only new files, never over one it did not write."""
+    for path in paths:
+        if path and os.path.exists(path):
+            sys.exit("%s: exists; not overwritten" % path)
+
+
+def write_json(path, record):
+    """``record`` as JSON at ``path`` (written to a temporary file, then renamed)."""
+    import json
+    from mi_invrgbl.outdir import atomic_write_text
+    atomic_write_text(path, json.dumps(record, indent=1))

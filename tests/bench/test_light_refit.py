@@ -106,3 +106,22 @@ def test_roughness_taken_from_a_variant_is_held_while_the_light_moves(fitted):
     stage2.commit()
     assert np.allclose(np.array(node.values[key]), 0.85, atol=1e-6)
     assert not np.allclose(np.array(state.params[state.sky_key]), sky0)
+
+
+def test_a_bench_output_file_that_exists_is_refused_and_new_ones_are_written_whole(tmp_path, monkeypatch):
+    import street_truth
+    mine = tmp_path / "mine.json"
+    mine.write_text("the user's")
+    with pytest.raises(SystemExit, match="mine.json: exists; not overwritten"):
+        street_truth.refuse_existing(None, str(mine))
+    assert mine.read_text() == "the user's"
+    out = tmp_path / "rows.json"
+    street_truth.refuse_existing(str(out))
+    street_truth.write_json(str(out), {"rows": [1, 2]})
+    import json
+    assert json.loads(out.read_text()) == {"rows": [1, 2]}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mine.json", "rows.json"]
+    # light_refit refuses before it loads anything.
+    monkeypatch.setattr(sys, "argv", ["light_refit.py", str(tmp_path / "nofit"), "--json", str(mine)])
+    with pytest.raises(SystemExit, match="exists; not overwritten"):
+        lr.main()

@@ -57,7 +57,7 @@ from mi_invrgbl.scene.posing import set_frame  # noqa: E402
 from mi_invrgbl.synthetic import trajectory  # noqa: E402
 from mi_invrgbl.synthetic.rgb_frames import FramePoser  # noqa: E402
 from shading_breakdown import scaled  # noqa: E402
-from street_truth import open_fit  # noqa: E402
+from street_truth import open_fit, refuse_existing, write_json  # noqa: E402
 
 #: The terms: name, the light on ("sky" / "sun"), bounces on, diffuse on,
 #: and (the fit only) the sun's learned visibility instead of its traced one.
@@ -200,6 +200,7 @@ def main():
                     "(the fit's: eval's, %d)" % EVAL_SPP)
     ap.add_argument("--json", help="write the tables here")
     args = ap.parse_args()
+    refuse_existing(args.json)
     truth, out = None, {}
     for fit in args.fits:
         frames, gt, positions, scene = open_fit(fit, args.frames)
@@ -214,8 +215,7 @@ def main():
                  for d in json.loads((gt / "materials.json").read_text())["meshes"]}
         out[fit] = report(fit, truth, fitted, frames, positions, gt, names)
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(out, fh, indent=1)
+        write_json(args.json, out)
 
 
 if __name__ == "__main__":
