@@ -554,3 +554,45 @@ def test_a_changed_integrator_keeps_every_other_setting():
     assert integrator_like(scene) is None
     copy = integrator_like(scene, samples=7, sun_visibility="trace")
     assert copy.settings() == dict(settings, samples=7, sun_visibility="trace")
+
+
+def test_relighting_from_the_fitted_light_forgives_its_scale(fit_dir, tmp_path):
+    """The images fix albedo times light, not either alone. A truth whose
+    albedo is half the scene's under a light twice the scene's draws the same
+    images: the truth's time-B light put in as it is then relights twice too
+    bright, while the fitted light edited by the truth's time-B / time-A
+    ratios (what ``mi-invrgbl relight`` does to a fitted scene) relights as the
+    truth does."""
+    import shutil
+    from mi_invrgbl.eval.scoring import evaluate
+    from mi_invrgbl.physics.sh import Y0
+    copy = tmp_path / "fit"
+    shutil.copytree(fit_dir, copy)
+    # A constant fitted sky, so that per-channel ratios carry it exactly to time B's.
+    xml = (copy / "scene.xml").read_text()
+    sh = "1.6 1.8 2.3  0 0 0  0.5 0.5 0.7  0 0 0"
+    assert sh in xml
+    (copy / "scene.xml").write_text(xml.replace(sh, "1.6 1.8 2.3  0 0 0  0 0 0  0 0 0"))
+    frames = json.loads((copy / "frames.json").read_text())
+    frames["ground_truth"]["dir"] = str(copy / "gt")
+    (copy / "frames.json").write_text(json.dumps(frames))
+    s = 2.0
+    fitted = {"sky_radiance": [1.6 * Y0, 1.8 * Y0, 2.3 * Y0], "sun_irradiance": [3.0, 2.8, 2.5]}
+    lights = {"time_a": {k: [s * x for x in v] for k, v in fitted.items()},
+              "time_b": {**{k: [s * x for x in v] for k, v in TIME_B.items()},
+                         "sun_direction": (RZ.T @ SUN_B_SCENE).tolist()}}
+    lights["time_a"]["sun_direction"] = (RZ.T @ np.array([0.3, 0.4, 0.85])).tolist()
+    (copy / "gt" / "lights.json").write_text(json.dumps(lights))
+    res = evaluate(str(copy), "held-out", baseline=False, log=lambda *a: None)
+    m = res["mean"]
+    assert m["relight_edit_psnr"] > 60, m["relight_edit_psnr"]
+    assert m["relight_psnr"] < 25, m["relight_psnr"]
+    assert "relight_edit_psnr" in res["notes"]
+
+
+def test_edit_ratios():
+    from mi_invrgbl.eval.scoring import edit_ratios
+    sky, sun = edit_ratios({"time_a": {"sky_radiance": [0.5, 1, 2], "sun_irradiance": [4, 0, 2]},
+                            "time_b": {"sky_radiance": [1, 1, 1], "sun_irradiance": [2, 3, 2]}})
+    assert np.allclose(sky, [2, 1, 0.5]) and np.allclose(sun, [0.5, 0, 1])   # no time-A sun: none
+    assert edit_ratios({"time_b": {"sky_radiance": [1, 1, 1]}}) is None

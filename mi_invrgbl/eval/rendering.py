@@ -104,6 +104,20 @@ class SkySwap:
             *[float(v) for v in sun_irradiance])
         self.params.update()
 
+    def edit(self, sky_ratio, sun_direction, sun_ratio):
+        """The saved (fitted) light edited as ``mi-invrgbl relight`` edits it:
+        the sun turned to ``sun_direction``, every SH coefficient of the sky
+        scaled by ``sky_ratio`` (per channel) and the sun's irradiance by
+        ``sun_ratio``. The fitted light keeps its own level and shape; only
+        the change is the caller's."""
+        sh = np.array(self.saved["sh"], np.float64).reshape(-1, 3) * np.asarray(sky_ratio, np.float64)
+        irr = np.array(self.saved["sun_irradiance"], np.float64).ravel() * np.asarray(sun_ratio, np.float64)
+        self.params["sh"] = type(self.params["sh"])(sh.ravel().astype(np.float32))
+        self.params["sun_direction"] = type(self.params["sun_direction"])(
+            *[float(v) for v in sun_direction])
+        self.params["sun_irradiance"] = type(self.params["sun_irradiance"])(*[float(v) for v in irr])
+        self.params.update()
+
     def restore(self):
         for k, v in self.saved.items():
             self.params[k] = v
