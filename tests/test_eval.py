@@ -596,3 +596,9 @@ def test_edit_ratios():
                             "time_b": {"sky_radiance": [1, 1, 1], "sun_irradiance": [2, 3, 2]}})
     assert np.allclose(sky, [2, 1, 0.5]) and np.allclose(sun, [0.5, 0, 1])   # no time-A sun: none
     assert edit_ratios({"time_b": {"sky_radiance": [1, 1, 1]}}) is None
+    from mi_invrgbl.errors import UserError
+    for bad in ([1, 2], [1, float("nan"), 1], [1, -1, 1], "bright"):
+        with pytest.raises(UserError, match=r"gt/lights.json: time_a.sky_radiance must be three finite"):
+            edit_ratios({"time_a": {"sky_radiance": bad, "sun_irradiance": [1, 1, 1]},
+                         "time_b": {"sky_radiance": [1, 1, 1], "sun_irradiance": [1, 1, 1]}},
+                        "gt/lights.json")

@@ -267,16 +267,27 @@ def score_frame(scene, frames, k, spp, cam_integ, lidar_integ, nn=None, gt_dir=N
     return row
 
 
-def edit_ratios(lights):
+def edit_ratios(lights, source="lights.json"):
     """Per-channel time-B / time-A ratios of the truth's sky radiance and sun
     irradiance, or None where ``lights`` lacks a level (a zero time-A level
-    has no ratio: that light is left off the edit)."""
+    has no ratio: that light is left off the edit). A level that is not
+    three finite numbers >= 0 is refused, naming ``source``."""
     a, b = lights.get("time_a") or {}, lights.get("time_b") or {}
     out = []
     for key in ("sky_radiance", "sun_irradiance"):
         if key not in a or key not in b:
             return None
-        la, lb = np.asarray(a[key], np.float64), np.asarray(b[key], np.float64)
+        levels = []
+        for time_name, light in (("time_a", a), ("time_b", b)):
+            try:
+                v = np.asarray(light[key], np.float64).ravel()
+            except (TypeError, ValueError):
+                v = np.array([np.nan])
+            if v.shape != (3,) or not np.all(np.isfinite(v)) or np.any(v < 0):
+                raise UserError("%s: %s.%s must be three finite numbers >= 0, got %r"
+                                % (source, time_name, key, light[key]))
+            levels.append(v)
+        la, lb = levels
         out.append(np.where(la > 0, lb / np.where(la > 0, la, 1.0), 0.0))
     return out
 
@@ -310,7 +321,7 @@ def relight_pass(scene, frames, positions, rows, sky, lights, gt_dir, R, spp, in
     direction = R @ np.asarray(light.get("sun_direction", [0, 0, 1]), np.float64)
     passes = [("relight", "", lambda swap: swap.set(light.get("sky_radiance", [0, 0, 0]), direction,
                                                     light.get("sun_irradiance", [0, 0, 0])))]
-    ratios = edit_ratios(lights)
+    ratios = edit_ratios(lights, Path(gt_dir) / "lights.json")
     if ratios is not None:
         passes.append(("relight_edit", ", the fitted light edited",
                        lambda swap: swap.edit(ratios[0], direction, ratios[1])))
