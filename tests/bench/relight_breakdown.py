@@ -7,12 +7,14 @@ time-B light and scores the render against the truth's time-B image. The
 fitted albedo carries whatever the fitted light left it: where the fit's
 sun came out weaker against its sky than the truth's, the albedo of
 sunlit surfaces is too bright, and every relit pixel there too. This script
-renders each held-out frame four times through ``eval``'s own pipeline:
+renders each held-out frame five times through ``eval``'s own pipeline:
 under the fit's own light; the same with the sun's shadows traced through
 the Gaussians instead of read from the learned visibility field; under the
 truth's time-A light (the time of day the fit was made at), set the way
-``eval`` sets time B, with traced shadows; and under time B. For each it
-prints:
+``eval`` sets time B, with traced shadows; under time B; and under the
+fitted light edited to time B as ``eval``'s ``relight_edit_psnr`` edits it
+(the sun turned, sky and sun scaled by the truth's B / A ratios). For each
+it prints:
 
 - the PSNR as ``eval`` scores it;
 - the least-squares scale per channel (linear radiance, pooled over the
@@ -54,7 +56,7 @@ from mi_invrgbl.eval import metrics as M  # noqa: E402
 from mi_invrgbl.eval.ground_truth import gt_alignment, load_lights, source_number  # noqa: E402
 from mi_invrgbl.eval.inputs import read_channels, read_map  # noqa: E402
 from mi_invrgbl.eval.rendering import SkySwap, find_sky, integrator_like, render_camera  # noqa: E402
-from mi_invrgbl.eval.scoring import EVAL_SPP  # noqa: E402
+from mi_invrgbl.eval.scoring import EVAL_SPP, edit_ratios  # noqa: E402
 from mi_invrgbl.physics.colour import LUMINANCE  # noqa: E402
 from mi_invrgbl.physics import hits as hitlib  # noqa: E402
 from mi_invrgbl.physics.host_arrays import jit_array  # noqa: E402
@@ -166,11 +168,20 @@ def collect(fit, frames_spec, spp):
     for k in positions:
         sensor, _ = set_frame(scene, frames, k)
         cols["fit_ot"].append(render_camera(scene, sensor, spp, traced)["rgb"].reshape(-1, 3))
+    ratios = edit_ratios(lights, gt / "lights.json")
+    if ratios is None:
+        raise SystemExit("%s: lights.json lacks time A's or time B's levels" % gt)
+    direction_b = R @ np.asarray(lights["time_b"].get("sun_direction", [0, 0, 1]), np.float64)
     try:
-        for key, light in (("fit_at", lights["time_a"]), ("fit_b", lights["time_b"])):
-            swap.set(light.get("sky_radiance", [0, 0, 0]),
-                     R @ np.asarray(light.get("sun_direction", [0, 0, 1]), np.float64),
-                     light.get("sun_irradiance", [0, 0, 0]))
+        for key in ("fit_at", "fit_b", "fit_be"):
+            if key == "fit_be":
+                # Edits the fitted light SkySwap saved, not the one set last.
+                swap.edit(ratios[0], direction_b, ratios[1])
+            else:
+                light = lights["time_a" if key == "fit_at" else "time_b"]
+                swap.set(light.get("sky_radiance", [0, 0, 0]),
+                         R @ np.asarray(light.get("sun_direction", [0, 0, 1]), np.float64),
+                         light.get("sun_irradiance", [0, 0, 0]))
             cols[key] = []
             for k in positions:
                 sensor, _ = set_frame(scene, frames, k)
@@ -197,17 +208,19 @@ def report(fit_dir, data, names):
     for tag, f, t in (("own (time A)", data["fit_a"], data["true_a"]),
                       ("own, sun's shadows traced", data["fit_ot"], data["true_a"]),
                       ("time A relit (true light, traced sun)", data["fit_at"], data["true_a"]),
-                      ("time B (relit)", data["fit_b"], data["true_b"])):
+                      ("time B (relit)", data["fit_b"], data["true_b"]),
+                      ("time B from the fitted light", data["fit_be"], data["true_b"])):
         s = np.sum(f * t, 0) / np.maximum(np.sum(f * f, 0), 1e-12)
         print("| %s | %.2f | %s | %.2f |" % (tag, psnr(f, t), " ".join("%.3f" % v for v in s),
                                              psnr(f * s, t)))
     print("| material | pixels | A: error share | A: fitted/true | A traced: error share "
           "| A traced: fitted/true | A relit: error share | A relit: fitted/true "
-          "| B: error share | B: fitted/true |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "| B: error share | B: fitted/true | B edited: error share | B edited: fitted/true |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     err = {}
-    truth = {"a": "true_a", "ot": "true_a", "at": "true_a", "b": "true_b"}
-    for tag in ("a", "ot", "at", "b"):
+    tags = ("a", "ot", "at", "b", "be")
+    truth = {"a": "true_a", "ot": "true_a", "at": "true_a", "b": "true_b", "be": "true_b"}
+    for tag in tags:
         a = np.clip(M.linear_to_srgb(data["fit_" + tag]), 0.0, 1.0)
         b = np.clip(M.linear_to_srgb(data[truth[tag]]), 0.0, 1.0)
         err[tag] = np.sum((a - b) ** 2, 1)
@@ -216,7 +229,7 @@ def report(fit_dir, data, names):
     for name in [n for n in kinds if n not in small] + (["other"] if small else []):
         sel = np.isin(label, small) if name == "other" else label == name
         cells = []
-        for tag in ("a", "ot", "at", "b"):
+        for tag in tags:
             ratio = (np.mean(data["fit_" + tag][sel] @ LUMINANCE)
                      / max(np.mean(data[truth[tag]][sel] @ LUMINANCE), 1e-12))
             cells.append("%.3f | %.2f" % (err[tag][sel].sum() / err[tag].sum(), ratio))
