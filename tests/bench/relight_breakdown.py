@@ -29,7 +29,10 @@ it prints:
   sunlit (shadow rays from SHADOW_OFFSET above the true surface point of
   each pixel, towards the time-B sun, through the truth's
   ``scene_time_b.xml`` and through the fitted Gaussians; ``eval`` traces
-  from above each Gaussian's centre instead), and the share on which
+  from above each Gaussian's centre instead, and where the fitted surface
+  stands in front of the true one by more than the offset, as the street's
+  sunlit facades do (``surface_offset.py``), these rays start behind it and
+  overstate its shadows), and the share on which
   the two disagree. Shadow casters the fit lacks show as sunlit pixels the
   truth has in shadow; casters it has and the truth does not (walls the
   import extended above a lower roof) as shadowed pixels the truth lights.
