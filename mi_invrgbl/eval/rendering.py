@@ -104,6 +104,15 @@ class SkySwap:
             *[float(v) for v in sun_irradiance])
         self.params.update()
 
+    def put(self, light, R):
+        """A ground-truth light (a ``lights.json`` entry: constant
+        ``sky_radiance``, ``sun_direction`` in the truth's world,
+        ``sun_irradiance``; missing parts off), the direction turned into
+        the scene's world by ``R``."""
+        self.set(light.get("sky_radiance", [0, 0, 0]),
+                 R @ np.asarray(light.get("sun_direction", [0, 0, 1]), np.float64),
+                 light.get("sun_irradiance", [0, 0, 0]))
+
     def edit(self, sky_ratio, sun_direction, sun_ratio):
         """The saved (fitted) light edited as ``mi-invrgbl relight`` edits it:
         the sun turned to ``sun_direction``, every SH coefficient of the sky

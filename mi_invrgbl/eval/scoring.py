@@ -319,8 +319,7 @@ def relight_pass(scene, frames, positions, rows, sky, lights, gt_dir, R, spp, in
     if not todo:
         return
     direction = R @ np.asarray(light.get("sun_direction", [0, 0, 1]), np.float64)
-    passes = [("relight", "", lambda swap: swap.set(light.get("sky_radiance", [0, 0, 0]), direction,
-                                                    light.get("sun_irradiance", [0, 0, 0])))]
+    passes = [("relight", "", lambda swap: swap.put(light, R))]
     ratios = edit_ratios(lights, Path(gt_dir) / "lights.json")
     if ratios is not None:
         passes.append(("relight_edit", ", the fitted light edited",

@@ -72,6 +72,25 @@ def depth_normals(points, alpha):
     return n, ok
 
 
+def rendered_and_true(scene, sensor, gt, number, R, spp):
+    """One held-out frame rendered as ``eval`` renders it, beside the
+    truth's maps: the render's channels, the truth's mesh ids and normals
+    (turned into the scene's world by ``R``), the pixel-centre ray
+    directions (H, W, 3), and the distance along them to the fitted surface
+    (depth AOV over alpha) and to the true one (its camera z turned into a
+    distance)."""
+    cam = render_camera(scene, sensor, spp)
+    h, w = cam["rgb"].shape[:2]
+    base = str(gt / "maps" / ("%06d" % number))
+    mesh = first_channel(read_map(base + "_mesh_id.exr"))
+    true_n = read_map(base + "_normal.exr") @ R.T
+    true_z = first_channel(read_map(base + "_depth.exr"))
+    dist = cam["depth"] / np.maximum(cam["alpha"], 1e-6)
+    d = as_rows(camera_rays(sensor, w, h).d).reshape(h, w, 3)
+    true_dist = true_z / np.maximum(z_per_unit_distance(sensor, w, h, d), 1e-6)
+    return cam, mesh, true_n, d, dist, true_dist
+
+
 def angle(a, b):
     return np.degrees(np.arccos(np.clip(np.sum(a * b, -1), -1.0, 1.0)))
 
@@ -90,17 +109,9 @@ def main(argv=None):
     cols = {r: {"ratio": [], "fit": [], "depth": [], "has_depth": []} for r in regions}
     for k in positions:
         sensor, _ = set_frame(scene, frames, k)
-        cam = render_camera(scene, sensor, args.spp)
-        h, w = cam["rgb"].shape[:2]
-        base = str(gt / "maps" / ("%06d" % source_number(frames[k])))
-        mesh = first_channel(read_map(base + "_mesh_id.exr"))
-        true_n = read_map(base + "_normal.exr") @ R.T
-        true_z = first_channel(read_map(base + "_depth.exr"))
+        cam, mesh, true_n, d, dist, true_dist = rendered_and_true(
+            scene, sensor, gt, source_number(frames[k]), R, args.spp)
         alpha = cam["alpha"]
-        dist = cam["depth"] / np.maximum(alpha, 1e-6)
-        # The truth's own pixel-centre rays, and its camera z per unit of distance.
-        d = as_rows(camera_rays(sensor, w, h).d).reshape(h, w, 3)
-        true_dist = true_z / np.maximum(z_per_unit_distance(sensor, w, h, d), 1e-6)
         ratio = np.where(alpha > 0.5, dist / np.maximum(true_dist, 1e-6), np.inf)
         fitted = cam["normal"] / np.maximum(np.linalg.norm(cam["normal"], axis=-1, keepdims=True), 1e-9)
         from_depth, has = depth_normals(d * dist[..., None], alpha)

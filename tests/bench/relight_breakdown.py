@@ -181,10 +181,7 @@ def collect(fit, frames_spec, spp):
                 # Edits the fitted light SkySwap saved, not the one set last.
                 swap.edit(ratios[0], direction_b, ratios[1])
             else:
-                light = lights["time_a" if key == "fit_at" else "time_b"]
-                swap.set(light.get("sky_radiance", [0, 0, 0]),
-                         R @ np.asarray(light.get("sun_direction", [0, 0, 1]), np.float64),
-                         light.get("sun_irradiance", [0, 0, 0]))
+                swap.put(lights["time_a" if key == "fit_at" else "time_b"], R)
             cols[key] = []
             for k in positions:
                 sensor, _ = set_frame(scene, frames, k)

@@ -31,14 +31,10 @@ import numpy as np  # noqa: E402
 
 import mi_invrgbl  # noqa: E402,F401
 from mi_invrgbl.eval.ground_truth import gt_alignment, source_number  # noqa: E402
-from mi_invrgbl.eval.inputs import read_map  # noqa: E402
-from mi_invrgbl.eval.rendering import render_camera  # noqa: E402
 from mi_invrgbl.eval.scoring import EVAL_SPP  # noqa: E402
 from mi_invrgbl.physics.lighting import SHADOW_OFFSET  # noqa: E402
-from mi_invrgbl.synthetic.groundtruth import camera_rays, rows as as_rows  # noqa: E402
 from mi_invrgbl.scene.posing import set_frame  # noqa: E402
-from albedo_breakdown import first_channel  # noqa: E402
-from normal_oracle import z_per_unit_distance  # noqa: E402
+from depth_normals import rendered_and_true  # noqa: E402
 from street_truth import open_fit  # noqa: E402
 
 #: Offsets beyond this (m) are counted: the shadow rays' start above a surface.
@@ -55,16 +51,9 @@ def offsets(fit, spp):
     out = {}
     for k in positions:
         sensor, _ = set_frame(scene, frames, k)
-        cam = render_camera(scene, sensor, spp)
-        h, w = cam["rgb"].shape[:2]
-        base = str(gt / "maps" / ("%06d" % source_number(frames[k])))
-        mesh = first_channel(read_map(base + "_mesh_id.exr"))
-        true_n = read_map(base + "_normal.exr") @ R.T
-        true_z = first_channel(read_map(base + "_depth.exr"))
+        cam, mesh, true_n, d, dist, true_dist = rendered_and_true(
+            scene, sensor, gt, source_number(frames[k]), R, spp)
         alpha = cam["alpha"]
-        dist = cam["depth"] / np.maximum(alpha, 1e-6)
-        d = as_rows(camera_rays(sensor, w, h).d).reshape(h, w, 3)
-        true_dist = true_z / np.maximum(z_per_unit_distance(sensor, w, h, d), 1e-6)
         along = (dist - true_dist) * np.abs(np.sum(d * true_n, -1))
         scored = (mesh >= 0) & (alpha > COVERED) & np.isfinite(along)
         for i in np.unique(mesh[scored]):
