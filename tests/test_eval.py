@@ -242,6 +242,9 @@ def test_eval_perfect_on_own_renders(fit_dir, capsys):
     assert m["range_error"] < 1e-5
     assert m["ray_drop_accuracy"] == 1.0
     assert m["albedo_rmse"] < 1e-4
+    # The references are scored beside it, on the same pixels.
+    assert math.isfinite(m["albedo_rmse_flat"]) and math.isfinite(m["albedo_rmse_chromaticity"])
+    assert "alb-flat" in printed and "alb-chr" in printed
     assert m["roughness_mae"] < 1e-4
     assert m["normal_angle_deg"] < 0.1       # through the RZ world alignment
     assert m["lidar_albedo_rmse"] < 1e-4
@@ -602,3 +605,39 @@ def test_edit_ratios():
             edit_ratios({"time_a": {"sky_radiance": bad, "sun_irradiance": [1, 1, 1]},
                          "time_b": {"sky_radiance": [1, 1, 1], "sun_irradiance": [1, 1, 1]}},
                         "gt/lights.json")
+
+
+def test_albedo_references():
+    """The albedo references against closed forms: a flat map scores the
+    truth's spread about its per-channel mean; the photo's chromaticity is
+    right where the shading is grey and every albedo has one brightness,
+    and wrong where the light is coloured."""
+    from mi_invrgbl.eval import metrics as M
+    from mi_invrgbl.eval.baselines import albedo_references
+    rng = np.random.default_rng(3)
+    h, w = 24, 32
+    hue = rng.uniform(0.2, 1.0, (h, w, 3))
+    albedo = 0.4 * hue / hue.mean(axis=2, keepdims=True)       # one brightness, many hues
+    grey = rng.uniform(0.3, 1.0, (h, w, 1))                      # shading, grey
+    mask = np.ones((h, w), bool)
+    mask[0, :] = False
+    photo = np.round(np.clip(M.linear_to_srgb(albedo * grey), 0, 1) * 255) / 255
+
+    refs = albedo_references(photo)
+    flat = M.albedo_rmse_scaled(refs["flat"], albedo, mask)
+    spread = math.sqrt(np.mean((albedo[mask] - albedo[mask].mean(axis=0)) ** 2))
+    assert flat == pytest.approx(spread, rel=1e-9)
+    assert M.albedo_rmse_scaled(refs["chromaticity"], albedo, mask) < 0.01 < flat / 5
+
+    # Light of two colours (a warm sun on one half, a blue sky on the
+    # other) is taken for the albedo's colour; one scale cannot undo both.
+    tint = np.where(np.arange(w)[None, :, None] < w // 2, [1.0, 0.6, 0.3], [0.3, 0.6, 1.0])
+    tinted = np.round(np.clip(M.linear_to_srgb(albedo * grey * tint), 0, 1) * 255) / 255
+    assert M.albedo_rmse_scaled(albedo_references(tinted)["chromaticity"], albedo, mask) > 0.05
+
+    dark = photo.copy()
+    dark[3, 4] = 0.0
+    chroma = albedo_references(dark)["chromaticity"]
+    assert np.all(np.isfinite(chroma)) and np.all(chroma[3, 4] == 1.0)   # no hue: grey
+    with pytest.raises(ValueError, match="H, W, 3"):
+        albedo_references(photo[..., 0])

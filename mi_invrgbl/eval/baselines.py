@@ -2,6 +2,11 @@
 
 * LiDAR: the nearest-neighbour intensity (:class:`NearestNeighbourIntensity`).
 * Camera: the nearest training image (:func:`nearest_training_frame`).
+* Albedo (:func:`albedo_references`): a flat grey map, and the scored
+  photo's own chromaticity (each pixel's colour divided by the mean of its
+  channels: the intrinsic split that takes all shading as grey). Scored
+  like a fitted albedo, after a per-channel scale, they say whether the
+  inverse rendering found more than no decomposition at all.
 
 LiDAR: a held-out scan's intensity is predicted, beam by beam, as the intensity of
 the closest point among all *training* scans (world frame). This is what a
@@ -169,3 +174,25 @@ def nearest_training_frame(frames, k, positions):
         if d < best_d:
             best, best_d = j, d
     return best
+
+
+def albedo_references(observed_srgb) -> dict:
+    """Albedo maps that need no model, for an observed 8-bit sRGB image (H, W, 3) in [0, 1].
+
+    ``flat``: every pixel 1. After the per-channel least-squares scale the
+    albedo score applies, it scores the truth's own spread about its mean
+    (whatever constant is put in). ``chromaticity``: the photo in linear
+    light divided per pixel by the mean of its three channels, so every
+    pixel keeps its hue and loses its brightness: right where the shading is
+    grey and the albedo's brightness is one level. It reads the very photo
+    of the scored view, which a fitted scene rendering a new view does not
+    have, so it is a strict reference, not a method a user could run there.
+    """
+    from .metrics import srgb_to_linear
+    lin = srgb_to_linear(np.asarray(observed_srgb, np.float64))
+    if lin.ndim != 3 or lin.shape[2] != 3:
+        raise ValueError("albedo_references: expected an (H, W, 3) image, got %s" % (lin.shape,))
+    mean = lin.mean(axis=2, keepdims=True)
+    # Black pixels have no hue: grey, like the flat map.
+    chroma = np.where(mean > 1e-4, lin / np.maximum(mean, 1e-4), 1.0)
+    return {"flat": np.ones_like(lin), "chromaticity": chroma}

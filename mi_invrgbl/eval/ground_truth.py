@@ -11,7 +11,9 @@ Material metrics (:func:`ground_truth_metrics`): albedo RMSE after a
 per-channel scale fit, roughness MAE, normal angular error (degrees),
 LiDAR-albedo RMSE (absolute and scale-fitted), all over the pixels where the
 true surface exists and the render covers (alpha > :data:`ALPHA_MIN`; the
-AOVs are divided by alpha). :func:`sun_metrics` compares the fitted sun with
+AOVs are divided by alpha), with two albedo references scored alike (a
+flat map and the photo's own chromaticity,
+:func:`~mi_invrgbl.eval.baselines.albedo_references`). :func:`sun_metrics` compares the fitted sun with
 the true time-A sun.
 """
 
@@ -24,6 +26,7 @@ import numpy as np
 
 from ..errors import UserError
 from . import metrics as M
+from .baselines import albedo_references
 from .inputs import read_map
 
 #: Pixels count as covered by the render where alpha exceeds this.
@@ -82,8 +85,13 @@ def sun_metrics(sky, lights, R):
             "sun_direction_error_deg": float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))}
 
 
-def ground_truth_metrics(cam, gt_dir, number, R):
-    """Material metrics of one frame against gt/maps (empty dict if absent)."""
+def ground_truth_metrics(cam, gt_dir, number, R, observed=None):
+    """Material metrics of one frame against gt/maps (empty dict if absent).
+
+    With the frame's ``observed`` sRGB image, the albedo references of
+    :func:`~mi_invrgbl.eval.baselines.albedo_references` are scored on the
+    same pixels as the fitted albedo (``albedo_rmse_flat``,
+    ``albedo_rmse_chromaticity``)."""
     base = Path(gt_dir) / "maps" / ("%06d" % number)
     maps = {k: read_map(str(base) + "_%s.exr" % k)
             for k in ("albedo", "roughness", "normal", "lidar_albedo", "mesh_id")}
@@ -114,6 +122,9 @@ def ground_truth_metrics(cam, gt_dir, number, R):
 
     if maps["albedo"] is not None and cam.get("albedo") is not None:
         out["albedo_rmse"] = M.albedo_rmse_scaled(aov("albedo"), maps["albedo"], mask)
+        if observed is not None and np.shape(observed)[:2] == (h, w):
+            for name, ref in albedo_references(observed).items():
+                out["albedo_rmse_" + name] = M.albedo_rmse_scaled(ref, maps["albedo"], mask)
     if maps["roughness"] is not None and cam.get("roughness") is not None:
         out["roughness_mae"] = M.mae(aov("roughness"), maps["roughness"], mask)
     if maps["normal"] is not None and cam.get("normal") is not None:

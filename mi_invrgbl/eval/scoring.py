@@ -27,7 +27,9 @@ with ``lidar_return``, and the renders are compared with the observations:
   range error, ray-drop accuracy and the F1 of the no-return class. Pooled
   over the frames under ``lidar_raw_points`` in ``metrics.json``.
 * synthetic ground truth (``frames.json`` ``ground_truth.dir``, as written by
-  ``make-scene street``): albedo RMSE after a per-channel scale fit, roughness
+  ``make-scene street``): albedo RMSE after a per-channel scale fit (beside
+  it, scored alike, a flat albedo map and the photo's own chromaticity:
+  ``albedo_rmse_flat``, ``albedo_rmse_chromaticity``), roughness
   MAE, normal angular error (degrees), LiDAR-albedo RMSE (absolute and
   scale-fitted), all over the pixels where the true surface exists and the
   render covers (alpha > 0.5; the AOVs are divided by alpha), and relighting
@@ -79,7 +81,8 @@ TABLE = (("psnr", "PSNR", "%6.2f"), ("ssim", "SSIM", "%6.4f"),
          ("raw_intensity_rmse", "I-raw", "%7.4f"), ("raw_baseline_intensity_rmse", "NN-raw", "%7.4f"),
          ("raw_range_error", "rng-raw", "%6.3f"), ("raw_drop_accuracy", "drop-raw", "%8.4f"),
          ("raw_drop_f1", "drop-F1", "%7.4f"),
-         ("albedo_rmse", "albedo", "%6.4f"), ("roughness_mae", "rough", "%6.4f"),
+         ("albedo_rmse", "albedo", "%6.4f"), ("albedo_rmse_flat", "alb-flat", "%8.4f"),
+         ("albedo_rmse_chromaticity", "alb-chr", "%7.4f"), ("roughness_mae", "rough", "%6.4f"),
          ("normal_angle_deg", "normal°", "%7.2f"), ("lidar_albedo_rmse", "L-alb", "%6.4f"),
          ("relight_psnr", "relight", "%7.2f"), ("relight_edit_psnr", "relit-ed", "%8.2f"))
 
@@ -242,6 +245,7 @@ def score_frame(scene, frames, k, spp, cam_integ, lidar_integ, nn=None, gt_dir=N
         raise UserError("%s: no camera sensor '%s' for frame %d"
                         % (frames.path, rec.camera, rec.index))
     cam = render_camera(scene, cam_sensor, spp, cam_integ)
+    observed = None
     if rec.image is not None:
         observed = read_png(rec.image)
         row.update(image_metrics(cam["rgb"], observed))
@@ -256,7 +260,7 @@ def score_frame(scene, frames, k, spp, cam_integ, lidar_integ, nn=None, gt_dir=N
     elif rec.lidar_scan is not None:
         log("[eval] frame %d: no LiDAR sensor '%s' in the scene" % (rec.index, rec.lidar))
     if gt_dir is not None:
-        row.update(ground_truth_metrics(cam, gt_dir, source_number(rec), R))
+        row.update(ground_truth_metrics(cam, gt_dir, source_number(rec), R, observed))
     if save_renders:
         from ..io.images import write_exr
         os.makedirs(save_renders, exist_ok=True)
@@ -405,6 +409,9 @@ def evaluate(scene_path, frames_spec="held-out", spp=EVAL_SPP, samples=None, lid
             "notes": {"psnr": "sRGB in [0, 1], peak 1; identical images = %g dB" % PSNR_CAP,
                       "baseline_psnr": "the nearest training frame's image, unchanged",
                       "albedo_rmse": "per-channel least-squares scale fit, then RMSE",
+                      "albedo_rmse_flat": "a flat albedo map scored alike (the truth's spread)",
+                      "albedo_rmse_chromaticity": "the scored photo's own chromaticity (linear "
+                                                  "colour over its channel mean) scored alike",
                       "lidar_intensity_rmse": "range image: over beams that return in the "
                                               "observation",
                       "raw_intensity_rmse": "raw held-out points along their own rays, over "
