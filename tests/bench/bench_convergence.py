@@ -7,7 +7,8 @@ Run from the repository root::
     python tests/bench/bench_convergence.py --variant cuda_ad_rgb --work out/bench_gpu
 
 For each case (``street``: the seeded synthetic street of ``make-scene
-street``, imported with ``--max-points 60000 --no-triangulate`` as in the README's main job; ``kitti``: the KITTI raw
+street``, imported with ``--max-points 60000 --no-triangulate --roughness 0.85`` and fitted with
+``--diffuse-fresnel --weights lidar2rgb=1``, as in the README's main job; ``kitti``: the KITTI raw
 excerpt imported with ``--image-scale 0.25 --max-points 60000``) the bench
 imports once, then for every budget runs a real ``mi-invrgbl fit`` and
 ``mi-invrgbl eval`` on the held-out frames and prints one row: held-out PSNR
@@ -46,8 +47,9 @@ ROOT = Path(__file__).resolve().parents[2]
 KITTI = ROOT.parent / "shared" / "data" / "kitti-raw-excerpt"
 
 CASES = {
-    "street": dict(import_args=["--max-points", "60000", "--no-triangulate"]),
-    "kitti": dict(import_args=["--image-scale", "0.25", "--max-points", "60000"]),
+    "street": dict(import_args=["--max-points", "60000", "--no-triangulate", "--roughness", "0.85"],
+                   fit_args=["--diffuse-fresnel", "--weights", "lidar2rgb=1"]),
+    "kitti": dict(import_args=["--image-scale", "0.25", "--max-points", "60000"], fit_args=[]),
 }
 
 
@@ -208,7 +210,8 @@ def calibrate(case, scene: Path, variant, iters, log) -> Calibration:
 
     fit = times()
     if fit is None:
-        run(cli(variant, "fit", scene, "-o", out, "--stage1", iters, "--stage2", iters), log)
+        run(cli(variant, "fit", scene, "-o", out, "--stage1", iters, "--stage2", iters,
+                *CASES[case]["fit_args"]), log)
         fit = times()
     if fit is None or "times_s" not in fit:
         raise SystemExit(f"{out}: no metrics.json with the fit's times")
@@ -246,10 +249,11 @@ def fit_budget(case, scene: Path, budget, variant, args, cal, log) -> Row:
     if args.native_budget:
         n1 = n2 = None
         over = False
-        cmd = cli(variant, "fit", scene, "-o", out, "--budget", budget)
+        cmd = cli(variant, "fit", scene, "-o", out, "--budget", budget, *CASES[case]["fit_args"])
     else:
         n1, n2, over = cal.iterations(60.0 * budget, args.min_iterations)
-        cmd = cli(variant, "fit", scene, "-o", out, "--stage1", n1, "--stage2", n2)
+        cmd = cli(variant, "fit", scene, "-o", out, "--stage1", n1, "--stage2", n2,
+                  *CASES[case]["fit_args"])
     if not (args.reuse and (out / "metrics.json").is_file()
             and "mean" in fit_metrics(out)):
         run(cmd, log)
