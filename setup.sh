@@ -25,7 +25,8 @@ echo "[setup] installed mi-invrgbl into .venv"
 if [ "${1:-}" != "--no-run" ]; then
   .venv/bin/mi-invrgbl render scenes/street.xml -o out/street --overwrite
   [ -f out/street_data/gt/trajectory.json ] || .venv/bin/mi-invrgbl make-scene street out/street_data
-  [ -f out/street_fit/scene.xml ] || .venv/bin/mi-invrgbl import out/street_data -o out/street_fit/scene.xml --max-points 60000 --no-triangulate --roughness 0.85
+  # Imported every time (5 s): a scene imported by an earlier release would keep its options.
+  .venv/bin/mi-invrgbl import out/street_data -o out/street_fit/scene.xml --max-points 60000 --no-triangulate --roughness 0.85 --overwrite
   .venv/bin/mi-invrgbl fit out/street_fit/scene.xml --budget 8 --diffuse-fresnel --weights lidar2rgb=1 --overwrite
   .venv/bin/mi-invrgbl eval out/street_fit/fit
 fi

@@ -13,8 +13,8 @@ LiDAR-albedo RMSE (absolute and scale-fitted), all over the pixels where the
 true surface exists and the render covers (alpha > :data:`ALPHA_MIN`; the
 AOVs are divided by alpha), with two albedo references scored alike (a
 flat map and the photo's own chromaticity,
-:func:`~mi_invrgbl.eval.baselines.albedo_references`). :func:`sun_metrics` compares the fitted sun with
-the true time-A sun.
+:func:`~mi_invrgbl.eval.baselines.albedo_references`). :func:`sun_metrics`
+compares the fitted sun with the true time-A sun.
 """
 
 from __future__ import annotations
