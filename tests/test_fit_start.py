@@ -18,7 +18,7 @@ def test_stage2_start_chooses_among_sun_directions(scene_path, tmp_path, monkeyp
     kept start is :func:`choose_start`'s pick (the true one's wherever the
     wrong one falls beyond the margin)."""
     from mi_invrgbl.fit import selection
-    from mi_invrgbl.fit.stage2 import START_ROUGHNESS
+    from mi_invrgbl.fit.stage2 import GLOSSY_START_ROUGHNESS, START_ROUGHNESS
     from mi_invrgbl.fit.shading_init import START_PSNR_MARGIN, choose_start
     from fit_scene import SUN
     true = np.array(SUN) / np.linalg.norm(SUN)
@@ -53,20 +53,76 @@ def test_stage2_start_chooses_among_sun_directions(scene_path, tmp_path, monkeyp
     if max(on_wrong) < max(on_true) - START_PSNR_MARGIN:
         assert np.allclose(chosen["sun_direction"], true, atol=1e-5)
     # The kept start is made again under each start roughness; the best
-    # validation score decides, and its roughness is what stage 2 starts from.
+    # validation score decides (one roughness for all, or one per Gaussian
+    # where that scores at least as well), and its roughness is what stage 2
+    # starts from.
     rough = metrics["selection"]["shading_init"]["start_roughness"]
     scores = [c["psnr"] for c in rough["candidates"]]
-    assert rough["scored_on"] == "validation" and len(scores) == 1 + len(START_ROUGHNESS)
+    assert rough["scored_on"] == "validation"
+    assert len(scores) == 1 + len(START_ROUGHNESS) + len(GLOSSY_START_ROUGHNESS)
     assert all(np.isfinite(scores))
-    assert rough["candidates"][int(np.argmax(scores))]["roughness"] == rough["chosen"]
+    # A glossy roughness competes only Gaussian by Gaussian, never for all.
+    for_all = [i for i, c in enumerate(rough["candidates"])
+               if c["roughness"] not in GLOSSY_START_ROUGHNESS]
+    best = max(for_all, key=lambda i: scores[i])
+    mix = rough.get("per_gaussian")
+    if rough["chosen"] == "per_gaussian":
+        assert mix["kept"] and mix["psnr"] >= scores[best]
+        assert np.isclose(sum(mix["shares"].values()), 1.0, atol=1e-3)
+    else:
+        assert rough["candidates"][best]["roughness"] == rough["chosen"]
+        assert mix is None or (not mix["kept"] and mix["psnr"] < scores[best])
     # (the first is the kept candidate's start above, at the imported roughness)
     assert np.isclose(scores[0], cands[start["chosen"]]["psnr"])
-    # Stage 2 went on from the chosen roughness (4 steps at rate 1e-2 move it little).
+    # Stage 2 went on from the chosen roughness (4 steps at rate 1e-2 move it
+    # little): every Gaussian's is near one of the starts'.
     ckpt = np.load(tmp_path / "checkpoints" / "latest.npz")
     rough_now = np.concatenate([v for k, v in ckpt.items()
                                 if k.startswith("model/") and k.endswith(".roughness")])
-    had = 0.5 if rough["chosen"] is None else rough["chosen"]
-    assert abs(float(np.median(rough_now)) - had) < 0.06
+    if rough["chosen"] == "per_gaussian":
+        starts = np.array([0.5 if c["roughness"] is None else c["roughness"]
+                           for c in rough["candidates"]])
+        assert np.all(np.min(np.abs(rough_now[:, None] - starts[None, :]), axis=1) < 0.06)
+    else:
+        had = 0.5 if rough["chosen"] is None else rough["chosen"]
+        assert abs(float(np.median(rough_now)) - had) < 0.06
+
+
+def test_per_gaussian_start_roughness_rule():
+    """Each Gaussian leaves the validation's best start for the start that
+    rendered its pixels best only by the margin and on enough pixels; where
+    none does, or the best start's errors were not measured, no mix is made."""
+    from types import SimpleNamespace
+    from mi_invrgbl.fit.stage2 import PER_GAUSSIAN_MARGIN, PER_GAUSSIAN_MIN_PIXELS, Stage2
+    nodes = {"a": SimpleNamespace(count=3), "b": SimpleNamespace(count=2)}
+    fake = SimpleNamespace(ctx=SimpleNamespace(model=SimpleNamespace(nodes=nodes)))
+    trials = [(20.0, None, {}), (21.0, 0.75, {}), (19.0, 0.1, {})]
+    imported = [np.array([0.5, 0.6, 0.7]), np.array([0.8, 0.9])]
+
+    def per_node(i):
+        r = trials[i][1]
+        return imported if r is None else [np.full(3, r), np.full(2, r)]
+    many = PER_GAUSSIAN_MIN_PIXELS * 2
+    best_err = np.array([1.0, 1.0, 1.0, 1.0, 1.0])
+    wsum = np.array([many, many, many, PER_GAUSSIAN_MIN_PIXELS / 2, many])
+    glossy = np.array([PER_GAUSSIAN_MARGIN * 0.9, PER_GAUSSIAN_MARGIN * 1.1, 2.0, 0.1, 3.0])
+    imp = np.array([2.0, 2.0, 2.0, 2.0, 0.5])
+    errors = [(imp, wsum), (best_err, wsum), (glossy, wsum)]
+    rough, shares = Stage2._per_gaussian_roughness(fake, trials, errors, 1, per_node)
+    # Gaussian 0 beats the margin (0.1); 1 misses it and 3 has too few
+    # pixels (0.75); 4 is best as imported (its own 0.9).
+    assert np.allclose(np.concatenate(rough), [0.1, 0.75, 0.75, 0.75, 0.9])
+    assert [len(x) for x in rough] == [3, 2]
+    assert shares == {"0.75": 0.6, "0.1": 0.2, "as imported": 0.2}
+    # An unmeasured start takes no part; nothing changes -> None.
+    assert Stage2._per_gaussian_roughness(fake, trials, [None, (best_err, wsum), None], 1,
+                                          per_node) is None
+    assert Stage2._per_gaussian_roughness(fake, trials, [(imp, wsum), None, (glossy, wsum)], 1,
+                                          per_node) is None
+    # Non-finite errors never win.
+    bad = np.full(5, np.nan)
+    assert Stage2._per_gaussian_roughness(fake, trials, [None, (best_err, wsum), (bad, wsum)], 1,
+                                          per_node) is None
 
 
 def test_stage2_start_made_again_when_the_best_was_not_the_last(scene_path, tmp_path, monkeypatch):

@@ -572,11 +572,18 @@ def start_stage2(state: FitState, frozen, initialise=True):
                           for i, c in enumerate(sc["candidates"])), sc["chosen"] + 1))
         if "start_roughness" in si:
             sr = si["start_roughness"]
-            state.log("[fit] roughness at stage 2's start: %s (validation PSNR %s)" % (
-                "as imported" if sr["chosen"] is None else "%.2g" % sr["chosen"], ", ".join(
-                    "%s %s dB" % ("as imported" if c["roughness"] is None else "%.2g" % c["roughness"],
+            def rough_name(r):
+                return ("as imported" if r is None else r.replace("_", " ") if isinstance(r, str)
+                        else "%.2g" % r)
+            mix = sr.get("per_gaussian")
+            state.log("[fit] roughness at stage 2's start: %s (validation PSNR %s%s)" % (
+                rough_name(sr["chosen"]), ", ".join(
+                    "%s %s dB" % (rough_name(c["roughness"]),
                                   "-" if c["psnr"] is None else "%.2f" % c["psnr"])
-                    for c in sr["candidates"])))
+                    for c in sr["candidates"]),
+                "" if mix is None else "; per Gaussian %s dB, shares %s" % (
+                    "-" if mix["psnr"] is None else "%.2f" % mix["psnr"],
+                    ", ".join("%s %.1f %%" % (k, 100 * v) for k, v in mix["shares"].items()))))
         if "light_scale_scores" in si:
             state.log("[fit] light level at stage 2's start: %.2fx the fitted sky and sun (under "
                       "the fitted light the albedo reproducing stage 1 would clip at 1; starting "
