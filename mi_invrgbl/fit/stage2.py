@@ -511,6 +511,7 @@ class Stage2:
         current = 0 if kept_is_current else None
         # Per start, its pixel error per Gaussian (None where not measured).
         errors = [self.gaussian_errors() if kept_is_current else None]
+        # (With no roughness starts at all, e.g. a test's, none are glossy.)
         glossy = tuple(GLOSSY_START_ROUGHNESS) if START_ROUGHNESS else ()
         for r in tuple(START_ROUGHNESS) + glossy:
             for node in model.nodes.values():
@@ -590,6 +591,7 @@ class Stage2:
         shares = {("as imported" if trials[i][1] is None else "%.2g" % trials[i][1]):
                   round(float(np.mean(choice == i)), 4) for i in starts}
         return np.split(rough, np.cumsum(counts)[:-1]), shares
+
     def _start_score(self, report):
         """Validation PSNR of the start :meth:`_init_shading` just set (its
         light-level search's best, or scored now)."""
