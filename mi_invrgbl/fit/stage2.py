@@ -799,26 +799,16 @@ class Stage2:
         The specular part of the shading does not depend on the albedo, so it
         is rendered once with the albedo at zero (no diffuse, no bounce)."""
         ctx = self.ctx
-        sample = self._training_sample(frames)
-        if not sample:
-            count = sum(ctx.model.nodes[n].count for n in names)
-            return np.zeros((count, 3)), np.ones((count, 1))
         vals = self.model_values()
         for n in names:
             key = "%s.%s" % (n, BY_NAME["albedo"].variable)
             vals[key] = dr.zeros(mi.Float, dr.width(vals[key]))
         acc, wsum, tsum = None, None, None
         with dr.suspend_grad():
-            for f in sample:
-                fh = self.frozen.camera[f.index]
-                nodes = self.frozen.nodes(f, vals)
-                lighting = self.lighting(nodes, self.frozen.cache(f), frame=f)
+            for f, fh, nodes, lighting, gi, w in self._training_hits(frames, vals):
                 g = frozen_gaussian_hits(nodes, f.camera.rays, fh)
-                colour, _, n, tau, _ = self.ctx.camera_integrator.shade_gaussian_hits(
+                colour, _, n, tau, _ = ctx.camera_integrator.shade_gaussian_hits(
                     lighting, nodes, f.camera.rays, fh, g)
-                gi = np.array(lighting.table.global_index(fh.node_ids, fh.prims))
-                w = np.array(fh.weight, np.float64)
-                w = np.where(f.camera.valid()[np.array(fh.ray)], w, 0.0)
                 c = np.array(colour, np.float64).T
                 if acc is None:
                     acc = np.zeros((lighting.table.total, 3))
@@ -831,35 +821,47 @@ class Stage2:
                     _, d = hitlib.expand_rays(f.camera.rays, fh)
                     t = np.array(coat.way_out(dr.dot(n, d), tau, lighting.f0), np.float64)
                     tsum += np.bincount(gi, w * t, minlength=tsum.shape[0])
+        if acc is None:
+            count = sum(ctx.model.nodes[n].count for n in names)
+            return np.zeros((count, 3)), np.ones((count, 1))
         seen = wsum > 1e-6
         spec = np.where(seen[:, None], acc / np.maximum(wsum, 1e-6)[:, None], 0.0)
         t_out = np.where(seen, tsum / np.maximum(wsum, 1e-6), 1.0) if transmission else \
             np.ones_like(wsum)
         return spec, t_out[:, None]
 
-    def _training_sample(self, frames):
-        """Up to ``frames`` training frames with a frozen camera, spread over
-        the sequence."""
+    def _training_hits(self, frames, vals):
+        """For up to ``frames`` training frames with a frozen camera, spread
+        over the sequence, with the model values ``vals``:
+        yields (frame, its frozen hits, nodes, lighting, each hit's Gaussian
+        in the lighting table's order, each hit's blend weight with the
+        pixels the camera does not observe at 0). What the per-Gaussian
+        averages over the training views (:meth:`seen_by_cameras`,
+        :meth:`gaussian_errors`) share; callers iterate it under
+        ``dr.suspend_grad()``."""
         train = [f for f in self.ctx.train_frames if f.index in self.frozen.camera]
         if not train:
-            return []
+            return
         pick = np.unique(np.linspace(0, len(train) - 1, min(frames, len(train))).round().astype(int))
-        return [train[i] for i in pick]
+        for i in pick:
+            f = train[i]
+            fh = self.frozen.camera[f.index]
+            nodes = self.frozen.nodes(f, vals)
+            lighting = self.lighting(nodes, self.frozen.cache(f), frame=f)
+            gi = np.array(lighting.table.global_index(fh.node_ids, fh.prims))
+            w = np.where(f.camera.valid()[np.array(fh.ray)], np.array(fh.weight, np.float64), 0.0)
+            yield f, fh, nodes, lighting, gi, w
 
     def gaussian_errors(self, frames=8):
         """Per Gaussian (the lighting table's order, ``model.nodes``'), the
         squared sRGB error of the pixels it shows in up to ``frames``
         training frames under the current start, averaged with its blend
         weights, and the sum of those weights (pixels). Gaussians no frame
-        sees have error 0 and weight 0."""
+        sees have error 0 and weight 0; None without training frames."""
         ctx = self.ctx
-        vals = self.model_values()
         err, wsum = None, None
         with dr.suspend_grad():
-            for f in self._training_sample(frames):
-                fh = self.frozen.camera[f.index]
-                nodes = self.frozen.nodes(f, vals)
-                lighting = self.lighting(nodes, self.frozen.cache(f), frame=f)
+            for f, fh, nodes, lighting, gi, w in self._training_hits(frames, self.model_values()):
                 out = camera_shaded(ctx.camera_integrator, ctx.scene, lighting, nodes,
                                     f.camera.rays, fh)
                 rgb = np.stack([np.array(out["rgb"][k], np.float64) for k in range(3)], axis=1)
@@ -867,13 +869,10 @@ class Stage2:
                 e = np.sum((linear_to_srgb(np.clip(rgb, 0.0, 1.0))
                             - linear_to_srgb(np.clip(target, 0.0, 1.0))) ** 2, axis=1)
                 e = np.where(np.isfinite(e), e, 0.0)
-                ray = np.array(fh.ray)
-                w = np.where(f.camera.valid()[ray], np.array(fh.weight, np.float64), 0.0)
-                gi = np.array(lighting.table.global_index(fh.node_ids, fh.prims))
                 if err is None:
                     err = np.zeros(lighting.table.total)
                     wsum = np.zeros(lighting.table.total)
-                err += np.bincount(gi, w * e[ray], minlength=err.shape[0])
+                err += np.bincount(gi, w * e[np.array(fh.ray)], minlength=err.shape[0])
                 wsum += np.bincount(gi, w, minlength=wsum.shape[0])
         if err is None:
             return None
