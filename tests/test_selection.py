@@ -17,10 +17,11 @@ from mi_invrgbl.fit.runner import FitConfig, apply_lighting
 from mi_invrgbl.fit.selection import PatchRegression, surface_patches
 
 
-def _select(tmp_path, sun):
+def _select(tmp_path, sun, sharpen=True):
     path = build(str(tmp_path), n_frames=5, width=96, height=32, columns=128, sun=sun)
     ctx = load_state(path, FitConfig(output=str(tmp_path / "fit"), fit_width=96, lidar_columns=128,
-                                     sun_candidates=32, seed=0), lambda *a: None)
+                                     sun_candidates=32, seed=0, sharpen_sun=sharpen),
+                     lambda *a: None)
     apply_lighting(ctx, choose_lighting(ctx))
     chosen = ctx.selection["sun"]
     print(chosen)
@@ -37,12 +38,65 @@ def test_sun_found_when_the_images_show_shadows(tmp_path):
     assert chosen["gain"] > 0.05 and chosen["direction"][2] > 0
     assert ctx.use_sun
     assert np.allclose(np.array(ctx.params[ctx.sun_dir_key]).ravel(), chosen["direction"], atol=1e-5)
+    # The used sun's direction was sharpened: the scan's refined peaks, none
+    # explaining more than the direction kept.
+    scan = chosen["scan"]
+    assert scan["peaks"] and scan["directions_scanned"] > 32
+    assert scan["found"]["gain"] == chosen["gain"]        # the decision's score is the search's
+    top = max(scan["peaks"], key=lambda p: p["gain"])
+    if scan["moved"]:
+        assert top["gain"] > chosen["gain"] and np.allclose(top["direction"], chosen["direction"])
+    else:
+        assert top["gain"] <= chosen["gain"] and chosen["direction"] == scan["found"]["direction"]
 
 
 def test_no_sun_in_an_overcast_scene(tmp_path):
     ctx, chosen = _select(tmp_path, sun=False)
     assert not chosen["use_sun"], chosen
     assert not ctx.use_sun
+    # A rejected sun explaining at least the trial's share was sharpened for
+    # the trial, and the decision stayed the search's.
+    if chosen["gain"] >= 0.025:
+        assert "scan" in chosen
+    else:
+        assert "scan" not in chosen
+
+
+def test_the_sun_is_not_sharpened_unless_asked(tmp_path):
+    # fit's default: the search's direction as it found it.
+    ctx, chosen = _select(tmp_path, sun=True, sharpen=False)
+    assert chosen["use_sun"] and "scan" not in chosen
+
+
+def test_scan_peaks_are_the_best_separate_directions():
+    from mi_invrgbl.fit.selection import scan_peaks
+    up = np.array([0.0, 0.0, 1.0])
+    tilt = lambda deg: np.array([np.sin(np.radians(deg)), 0.0, np.cos(np.radians(deg))])
+    dirs = np.array([up, tilt(5), tilt(30), tilt(40), tilt(60)])
+    gains = np.array([0.08, 0.09, 0.05, 0.06, 0.01])
+    # 0 lies 5 degrees from 1, the best: left out; 2 lies 10 from 3: left out.
+    assert scan_peaks(dirs, gains, count=4, separation=15.0) == [1, 3, 4]
+    assert scan_peaks(dirs, gains, count=2, separation=15.0) == [1, 3]
+    assert scan_peaks(dirs, gains, count=4, separation=1.0) == [1, 0, 3, 2]
+
+
+def test_a_sharpened_sun_never_explains_less(tmp_path):
+    # sharpen_sun keeps what the search found unless a refined peak beats
+    # it: handed a "found" direction that explains everything, it stays.
+    from mi_invrgbl.fit.selection import PatchRegression, sharpen_sun, surface_patches
+    ctx, chosen = _select(tmp_path, sun=True)
+    rng = np.random.default_rng(0)
+    G = 500
+    centers = rng.uniform(-3, 3, (G, 3)); centers[:, 2] = 0.0
+    normals = np.tile([0.0, 0.0, 1.0], (G, 1))
+    lum = rng.uniform(0.2, 0.4, G)
+    reg = PatchRegression(lum, surface_patches(centers, normals))
+    found = (np.array([0.0, 0.0, 1.0]), np.array([1.0, 1.0]), np.ones(G))
+    out = sharpen_sun(ctx.scene, centers, normals, lum, reg, found, scan_gaussians=200,
+                      directions=24, peaks=2)
+    assert not out["moved"] and out["best"] is found
+    assert out["gaussians_scanned"] == 200 and len(out["peaks"]) == 2
+    assert out["gains"][0] == 1.0 and out["directions"][0] is found[0]
 
 
 def test_sky_start_is_the_sky_that_renders_stage_1_best(tmp_path):

@@ -85,6 +85,11 @@ FLAGS = (
     ("--learn-sun-direction", "learn_sun_direction",
      "also refine the selected sun direction in stage 2 (with learned sun visibility; it moves "
      "only the n.l shading, so albedo can absorb it)", {}),
+    ("--sharpen-sun", "sharpen_sun",
+     "sharpen the direction of a sun the lighting selection uses or tries: 400 directions "
+     "scanned through 4000 of the Gaussians, the 4 best peaks refined through all (the true "
+     "sun's peak is a few degrees wide; costs about 1-2 minutes on 2 cores, not yet planned "
+     "by --budget)", {}),
     ("--no-sky-mask", "sky_mask",
      "do not mark the images' sky for stage 1 (default: bright, smooth pixels connected to the top "
      "edge, with no LiDAR return or moving object there, are fitted as sky, not Gaussians; switch "

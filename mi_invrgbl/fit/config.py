@@ -16,7 +16,7 @@ MODEL_FIELDS = ("batch_rays", "lidar_batch_rays", "fit_width", "lidar_columns", 
                 "densify_fraction", "densify_screen", "densify_scope", "split_scale",
                 "max_gaussians", "stage1_range", "stage1_drop", "stage1_sky", "seed", "fit_response",
                 "sun_candidates", "sun_gaussians", "per_frame_visibility", "learn_sun_direction",
-                "prune_sky_lookalikes", "sky_mask", "sun_visibility", "validation_every",
+                "sharpen_sun", "prune_sky_lookalikes", "sky_mask", "sun_visibility", "validation_every",
                 "object_poses", "object_bounds", "moving_shadows")
 
 
@@ -176,6 +176,13 @@ class FitConfig:
     #: the moving objects are lit").
     per_frame_visibility: bool = False
     learn_sun_direction: bool = False  # stage 2 refines the selected sun direction (opt-in)
+    #: Sharpen the direction of a sun the lighting selection uses or tries
+    #: (:func:`.selection.sharpen_sun`): on one stage 1 of the street it took
+    #: the sun from 12-32 degrees off to 1 degree, but it costs 60-106 s on
+    #: 2 cores that the budget does not plan for yet (the main job ran 527 s
+    #: of its 8 minutes), so it is opt-in (docs/measurements.md, "The sun's
+    #: search: a narrow peak among broad ones").
+    sharpen_sun: bool = False
     prune_sky_lookalikes: bool = True  # drop sky-coloured Gaussians with only sky behind them
     sky_mask: bool = True  # mark the images' sky for stage 1 (.sky_mask); weight: stage1_sky
     sun_visibility: str = "learn"  # learn | trace: the paper's per-Gaussian v_sun, or traced only

@@ -158,7 +158,8 @@ def choose_lighting(ctx: FitState) -> LightingChoice:
     if cfg.sun == "off":
         sel["sun"] = {"use_sun": False, "forced": True}
     elif centers.shape[0] >= 50:
-        sel["sun"] = select_sun(ctx.scene, centers, normals, lum, wts, cfg.sun_candidates)
+        sel["sun"] = select_sun(ctx.scene, centers, normals, lum, wts, cfg.sun_candidates,
+                                sharpen_gain=SUN_TRIAL_GAIN if cfg.sharpen_sun else None)
         if cfg.sun == "on":
             sel["sun"]["use_sun"], sel["sun"]["forced"] = True, True
     else:
@@ -246,6 +247,19 @@ def log_lighting(ctx: FitState, choice: LightingChoice, seconds):
                                      100 * s.get("gain_over_sky", float("nan")),
                                      100 * s.get("median_gain", float("nan")),
                                      s.get("sun_to_sky", float("nan")), choice.sh_order, seconds))
+    scan = s.get("scan")
+    if scan:
+        ctx.log("[fit] sun direction sharpened: %d directions scanned through %d Gaussians, "
+                "%d peaks refined (%s); %s; %.1f s" % (
+                    scan["directions_scanned"], scan["gaussians_scanned"], len(scan["peaks"]),
+                    ", ".join("%s %.1f %%" % (np.round(p["direction"], 2).tolist(), 100 * p["gain"])
+                              for p in scan["peaks"]),
+                    ("moved %.1f deg from the search's %s (%.1f %%)" % (
+                        np.degrees(np.arccos(np.clip(np.dot(scan["found"]["direction"],
+                                                            s["direction"]), -1.0, 1.0))),
+                        np.round(scan["found"]["direction"], 2).tolist(),
+                        100 * scan["found"]["gain"])) if scan["moved"] else
+                    "the search's direction kept", scan["seconds"]))
     start = choice.report.get("sh", {}).get("start")
     if start:
         ctx.log("[fit] sky start: %s (validation PSNR of stage 1 under each: %s)" % (
