@@ -178,10 +178,11 @@ class FitConfig:
     learn_sun_direction: bool = False  # stage 2 refines the selected sun direction (opt-in)
     #: Sharpen the direction of a sun the lighting selection uses or tries
     #: (:func:`.selection.sharpen_sun`): on one stage 1 of the street it took
-    #: the sun from 12-32 degrees off to 1 degree, but it costs 60-106 s on
-    #: 2 cores that the budget does not plan for yet (the main job ran 527 s
-    #: of its 8 minutes), so it is opt-in (docs/measurements.md, "The sun's
-    #: search: a narrow peak among broad ones").
+    #: the sun from 12-32 degrees off to 1 degree, on another a false peak
+    #: scored as high as the true one; it costs 60-110 s on 2 cores that the
+    #: budget does not plan for yet (the main job ran 527 s of its 8
+    #: minutes), so it is opt-in (docs/measurements.md, "The sun's search: a
+    #: narrow peak among broad ones").
     sharpen_sun: bool = False
     prune_sky_lookalikes: bool = True  # drop sky-coloured Gaussians with only sky behind them
     sky_mask: bool = True  # mark the images' sky for stage 1 (.sky_mask); weight: stage1_sky

@@ -237,28 +237,29 @@ def choose_sky_start(ctx: FitState, choice: LightingChoice) -> LightingChoice:
 
 def log_lighting(ctx: FitState, choice: LightingChoice, seconds):
     s = choice.report["sun"]
+    scan = s.get("scan")
+    # The search's direction with its gain (the decision's); a sharpened
+    # direction follows on its own line.
+    found = scan["found"]["direction"] if scan else s.get("direction", [0, 0, 1])
     ctx.log("[fit] lighting: sun %s (best direction %s explains %.1f %% of within-surface "
             "shading, %.1f %% on patches it was not chosen on, %.1f %% beyond sky occlusion, "
             "typical direction %.1f %%; sun/sky %.2f); "
             "SH order %d; %.1f s" % ("used" if choice.use_sun else "not used",
-                                     np.round(s.get("direction", [0, 0, 1]), 2).tolist(),
+                                     np.round(found, 2).tolist(),
                                      100 * s.get("gain", float("nan")),
                                      100 * s.get("cv_gain", float("nan")),
                                      100 * s.get("gain_over_sky", float("nan")),
                                      100 * s.get("median_gain", float("nan")),
                                      s.get("sun_to_sky", float("nan")), choice.sh_order, seconds))
-    scan = s.get("scan")
     if scan:
         ctx.log("[fit] sun direction sharpened: %d directions scanned through %d Gaussians, "
                 "%d peaks refined (%s); %s; %.1f s" % (
                     scan["directions_scanned"], scan["gaussians_scanned"], len(scan["peaks"]),
                     ", ".join("%s %.1f %%" % (np.round(p["direction"], 2).tolist(), 100 * p["gain"])
                               for p in scan["peaks"]),
-                    ("moved %.1f deg from the search's %s (%.1f %%)" % (
-                        np.degrees(np.arccos(np.clip(np.dot(scan["found"]["direction"],
-                                                            s["direction"]), -1.0, 1.0))),
-                        np.round(scan["found"]["direction"], 2).tolist(),
-                        100 * scan["found"]["gain"])) if scan["moved"] else
+                    ("moved %.1f deg to %s" % (
+                        np.degrees(np.arccos(np.clip(np.dot(found, s["direction"]), -1.0, 1.0))),
+                        np.round(s["direction"], 2).tolist())) if scan["moved"] else
                     "the search's direction kept", scan["seconds"]))
     start = choice.report.get("sh", {}).get("start")
     if start:

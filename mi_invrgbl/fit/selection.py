@@ -268,6 +268,11 @@ SCAN_GAUSSIANS = 4000
 #: search's, the others its alternatives.
 SCAN_PEAKS = 4
 PEAK_SEPARATION = 15.0
+#: A refined peak replaces the search's direction only where it explains
+#: this many times as much: false peaks can score as high as the true one
+#: (on a second stage 1 of the street a peak 48.6 degrees off refined to
+#: 0.0799 against the search's 0.0796 at 2.1 degrees).
+SHARPEN_MARGIN = 1.1
 
 
 def scan_peaks(directions, gains, count=SCAN_PEAKS, separation=PEAK_SEPARATION):
@@ -402,7 +407,7 @@ def sharpen_sun(scene, centers, normals, luminance, reg, found, scan_gaussians=S
     (:func:`scan_peaks`) are refined through every Gaussian
     (:func:`refine_peak`). ``found``: the search's (direction, (gain, rho),
     features). Returns a report: ``moved`` (whether a refined peak beat
-    ``found``'s gain), ``found`` (its direction and gain), ``best`` (the
+    ``found``'s gain by :data:`SHARPEN_MARGIN`), ``found`` (its direction and gain), ``best`` (the
     winner, as ``found``), ``directions`` and ``gains`` (``found`` and the refined peaks, for
     :func:`alternative_directions`), ``peaks`` (each refined peak's
     direction and gain), ``directions_scanned``, ``gaussians_scanned`` and
@@ -418,7 +423,7 @@ def sharpen_sun(scene, centers, normals, luminance, reg, found, scan_gaussians=S
     refined = [refine_peak(scene, centers, normals, reg, dirs[k], None, None)[:3]
                for k in scan_peaks(dirs, scores[:, 0], peaks)]
     win = max(refined, key=lambda r: r[1][0]) if refined else found
-    moved = bool(win[1][0] > found[1][0])
+    moved = bool(win[1][0] > SHARPEN_MARGIN * found[1][0])
     best = win if moved else found
     return {"moved": moved, "best": best,
             "directions": [found[0]] + [r[0] for r in refined],
