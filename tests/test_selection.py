@@ -82,6 +82,16 @@ def test_scan_peaks_are_the_best_separate_directions():
     assert scan_peaks(dirs, gains, count=4, separation=1.0) == [1, 0, 3, 2]
 
 
+def test_scan_peaks_keep_away_from_directions_taken_and_below_a_gain():
+    from mi_invrgbl.fit.selection import scan_peaks
+    tilt = lambda deg: np.array([np.sin(np.radians(deg)), 0.0, np.cos(np.radians(deg))])
+    dirs = np.array([tilt(0), tilt(5), tilt(30), tilt(40), tilt(60)])
+    gains = np.array([0.08, 0.09, 0.05, 0.06, 0.01])
+    # 0 and 1 lie within 15 degrees of a direction already refined.
+    assert scan_peaks(dirs, gains, count=4, separation=15.0, away_from=[tilt(3)]) == [3, 4]
+    assert scan_peaks(dirs, gains, count=4, separation=15.0, min_gain=0.05) == [1, 3]
+
+
 def test_a_sharpened_sun_never_explains_less(tmp_path):
     # sharpen_sun keeps what the search found unless a refined peak beats
     # it: handed a "found" direction that explains everything, it stays.

@@ -146,16 +146,10 @@ def alternative_directions(best_dir, best_gain, directions, gains):
     kept, best first. The shading test cannot always tell such directions
     apart (one KITTI stage 1 ranked a direction 45 degrees from another
     run's first); stage 2's start scores them on the validation frames."""
-    cos_sep = np.cos(np.radians(ALTERNATIVE_SEPARATION))
-    kept = [np.asarray(best_dir, np.float64) / np.linalg.norm(best_dir)]
-    for k in np.argsort(-np.asarray(gains)):
-        if len(kept) > ALTERNATIVES or not gains[k] >= ALTERNATIVE_GAIN * best_gain:
-            break
-        d = np.asarray(directions[k], np.float64)
-        d = d / np.linalg.norm(d)
-        if all(float(d @ e) < cos_sep for e in kept):
-            kept.append(d)
-    return [d.tolist() for d in kept]
+    best = np.asarray(best_dir, np.float64) / np.linalg.norm(best_dir)
+    others = scan_peaks(directions, gains, ALTERNATIVES, ALTERNATIVE_SEPARATION, away_from=[best],
+                        min_gain=ALTERNATIVE_GAIN * best_gain)
+    return [best.tolist()] + [_unit(directions[k]).tolist() for k in others]
 
 
 def refine_candidates(direction, spread_deg=10.0, count=12):
@@ -275,16 +269,27 @@ PEAK_SEPARATION = 15.0
 SHARPEN_MARGIN = 1.1
 
 
-def scan_peaks(directions, gains, count=SCAN_PEAKS, separation=PEAK_SEPARATION):
-    """Indices of the ``count`` best ``gains`` whose ``directions`` lie at
-    least ``separation`` degrees from every better one kept."""
+def _unit(d):
+    d = np.asarray(d, np.float64)
+    return d / np.linalg.norm(d)
+
+
+def scan_peaks(directions, gains, count=SCAN_PEAKS, separation=PEAK_SEPARATION, away_from=(),
+               min_gain=-np.inf):
+    """Indices of the ``count`` best ``gains`` (those at least ``min_gain``)
+    whose ``directions`` lie at least ``separation`` degrees from every
+    better one kept and from each of ``away_from`` (directions already
+    taken). :func:`alternative_directions` and :func:`sharpen_sun` share it."""
     cos_sep = np.cos(np.radians(separation))
+    taken = [_unit(d) for d in away_from]
     kept = []
     for k in np.argsort(-np.asarray(gains), kind="stable"):
-        if all(float(np.dot(directions[k], directions[j])) < cos_sep for j in kept):
-            kept.append(int(k))
-        if len(kept) >= count:
+        if len(kept) >= count or not gains[k] >= min_gain:
             break
+        d = _unit(directions[k])
+        if all(float(d @ e) < cos_sep for e in taken):
+            kept.append(int(k))
+            taken.append(d)
     return kept
 
 
@@ -309,8 +314,9 @@ def select_sun(scene, centers, normals, luminance, weights=None, candidates=48,
     sun in stage 2, :data:`.model_selection.SUN_TRIAL_GAIN`; None: never,
     ``fit``'s default, ``--sharpen-sun`` to sharpen), is then
     sharpened by :func:`sharpen_sun` (``scan_gaussians``, ``seed``): the
-    best of its refined peaks where one explains more than the search's
-    best (``scan.moved``), with ``sun_to_sky`` and the levels from it.
+    best of its refined peaks where one explains :data:`SHARPEN_MARGIN`
+    times the search's best (``scan.moved``), with ``sun_to_sky`` and the
+    levels from it.
 
     The thresholds are set from four scenes (the gains beyond sky occlusion
     quoted here were measured against the sky visibility taken as it is,
@@ -404,7 +410,9 @@ def sharpen_sun(scene, centers, normals, luminance, reg, found, scan_gaussians=S
     upper hemisphere are scored through ``scan_gaussians`` of the Gaussians
     (drawn with ``seed``; ``luminance`` as :func:`select_sun`'s, ``reg``
     its regression over all), and the ``peaks`` best separate ones
-    (:func:`scan_peaks`) are refined through every Gaussian
+    (:func:`scan_peaks`; none within :data:`PEAK_SEPARATION` of
+    ``found``'s direction, refined there already) are refined through every
+    Gaussian
     (:func:`refine_peak`). ``found``: the search's (direction, (gain, rho),
     features). Returns a report: ``moved`` (whether a refined peak beat
     ``found``'s gain by :data:`SHARPEN_MARGIN`), ``found`` (its direction and gain), ``best`` (the
@@ -420,8 +428,9 @@ def sharpen_sun(scene, centers, normals, luminance, reg, found, scan_gaussians=S
                                reg.w[scan])
     dirs = hemisphere_candidates(directions)
     scores = score_candidates(scan_reg, sun_features(scene, centers[scan], normals[scan], dirs))
+    # (Peaks near the search's direction were refined there already.)
     refined = [refine_peak(scene, centers, normals, reg, dirs[k], None, None)[:3]
-               for k in scan_peaks(dirs, scores[:, 0], peaks)]
+               for k in scan_peaks(dirs, scores[:, 0], peaks, away_from=[found[0]])]
     win = max(refined, key=lambda r: r[1][0]) if refined else found
     moved = bool(win[1][0] > SHARPEN_MARGIN * found[1][0])
     best = win if moved else found
