@@ -66,11 +66,14 @@ def test_stage2_start_chooses_among_sun_directions(scene_path, tmp_path, monkeyp
                if c["roughness"] not in GLOSSY_START_ROUGHNESS]
     best = max(for_all, key=lambda i: scores[i])
     mix = rough.get("per_gaussian")
-    if rough["chosen"] == "per_gaussian":
+    # The best start with one roughness for all is named whichever is kept.
+    assert rough["candidates"][best]["roughness"] == rough["for_all"]
+    assert rough["kind"] in ("as_imported", "for_all", "per_gaussian")
+    if rough["kind"] == "per_gaussian":
         assert mix["kept"] and mix["psnr"] >= scores[best]
         assert np.isclose(sum(mix["shares"].values()), 1.0, atol=1e-3)
     else:
-        assert rough["candidates"][best]["roughness"] == rough["chosen"]
+        assert rough["kind"] == ("as_imported" if rough["for_all"] is None else "for_all")
         assert mix is None or (not mix["kept"] and mix["psnr"] < scores[best])
     # (the first is the kept candidate's start above, at the imported roughness)
     assert np.isclose(scores[0], cands[start["chosen"]]["psnr"])
@@ -79,12 +82,12 @@ def test_stage2_start_chooses_among_sun_directions(scene_path, tmp_path, monkeyp
     ckpt = np.load(tmp_path / "checkpoints" / "latest.npz")
     rough_now = np.concatenate([v for k, v in ckpt.items()
                                 if k.startswith("model/") and k.endswith(".roughness")])
-    if rough["chosen"] == "per_gaussian":
+    if rough["kind"] == "per_gaussian":
         starts = np.array([0.5 if c["roughness"] is None else c["roughness"]
                            for c in rough["candidates"]])
         assert np.all(np.min(np.abs(rough_now[:, None] - starts[None, :]), axis=1) < 0.06)
     else:
-        had = 0.5 if rough["chosen"] is None else rough["chosen"]
+        had = 0.5 if rough["for_all"] is None else rough["for_all"]
         assert abs(float(np.median(rough_now)) - had) < 0.06
 
 
@@ -146,7 +149,8 @@ def test_stage2_start_made_again_when_the_best_was_not_the_last(scene_path, tmp_
                       log=lambda *a: None)
     si = metrics["selection"]["shading_init"]
     cands = si["start_candidates"]["candidates"]
-    assert si["start_roughness"]["chosen"] is None and len(si["start_roughness"]["candidates"]) == 1
+    assert si["start_roughness"]["kind"] == "as_imported" and si["start_roughness"]["for_all"] is None
+    assert len(si["start_roughness"]["candidates"]) == 1
     chosen = np.array(cands[si["start_candidates"]["chosen"]]["sun_direction"])
     assert np.allclose(chosen, true, atol=1e-5)
     ckpt = np.load(tmp_path / "checkpoints" / "latest.npz")

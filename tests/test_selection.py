@@ -109,6 +109,39 @@ def test_a_sharpened_sun_never_explains_less(tmp_path):
     assert not out["moved"] and out["best"] is found
     assert out["gaussians_scanned"] == 200 and len(out["peaks"]) == 2
     assert out["gains"][0] == 1.0 and out["directions"][0] is found[0]
+    # A scene with fewer Gaussians than the scan's share scans all of them.
+    out = sharpen_sun(ctx.scene, centers, normals, lum, reg, found, scan_gaussians=10 * G,
+                      directions=24, peaks=2)
+    assert out["gaussians_scanned"] == G and not out["moved"]
+
+
+def test_a_colour_that_is_not_finite_is_left_out_of_the_shading_test():
+    # Three patches of a flat ground, a shadow across each: the gain of the
+    # shadow's feature with NaN colours (and a NaN weight) equals the gain
+    # without those Gaussians, and stays finite.
+    rng = np.random.default_rng(1)
+    G = 300
+    centers = rng.uniform(0, 6, (G, 3)); centers[:, 2] = 0.0
+    normals = np.tile([0.0, 0.0, 1.0], (G, 1))
+    patches = surface_patches(centers, normals)
+    lit = (centers[:, 0] % 2.0 > 1.0).astype(float)
+    lum = 0.2 * (1.0 + 2.0 * lit) * rng.uniform(0.9, 1.1, G)
+    weights = rng.uniform(0.5, 1.0, G)
+    bad = np.zeros(G, bool); bad[[3, 50, 120]] = True
+    lum_nan = lum.copy(); lum_nan[bad] = np.nan
+    w_nan = weights.copy(); w_nan[7] = np.inf; bad[7] = True
+    gain, rho = PatchRegression(lum_nan, patches, w_nan).fit(lit)
+    keep = ~bad
+    ref_gain, ref_rho = PatchRegression(lum[keep], patches[keep], weights[keep]).fit(lit[keep])
+    assert np.isfinite(gain) and gain > 0.5
+    assert gain == pytest.approx(ref_gain, rel=1e-9) and rho == ref_rho
+    # Nothing finite at all: no gain, not NaN.
+    assert PatchRegression(np.full(G, np.nan), patches).fit(lit) == (0.0, rho_first())
+
+
+def rho_first():
+    from mi_invrgbl.fit.selection import SUN_RATIOS
+    return float(SUN_RATIOS[0])
 
 
 def test_sky_start_is_the_sky_that_renders_stage_1_best(tmp_path):

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import UserError
+from ..physics.directions import angle_deg
 from . import metrics as M
 from .baselines import albedo_references
 from .inputs import read_map
@@ -79,10 +80,9 @@ def sun_metrics(sky, lights, R):
     irr = np.array(params["sun_irradiance"], np.float64).ravel()
     fitted = np.array(params["sun_direction"], np.float64).ravel()
     truth = R @ np.asarray(la["sun_direction"], np.float64)
-    cos = np.dot(fitted, truth) / max(np.linalg.norm(fitted) * np.linalg.norm(truth), 1e-12)
     return {"sun_used": bool(np.max(irr) > 0), "sun_direction": fitted.tolist(),
             "true_sun_direction": truth.tolist(),
-            "sun_direction_error_deg": float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))}
+            "sun_direction_error_deg": angle_deg(fitted, truth)}
 
 
 def ground_truth_metrics(cam, gt_dir, number, R, observed=None):

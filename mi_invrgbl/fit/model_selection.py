@@ -19,6 +19,7 @@ import mitsuba as mi
 
 from ..physics import hits as hitlib
 from ..physics.colour import LUMINANCE
+from ..physics.directions import angle_deg
 from ..physics.host_arrays import jit_array
 from ..physics.lighting import LightingCache
 from ..physics.sh import num_coeffs
@@ -258,7 +259,7 @@ def log_lighting(ctx: FitState, choice: LightingChoice, seconds):
                     ", ".join("%s %.1f %%" % (np.round(p["direction"], 2).tolist(), 100 * p["gain"])
                               for p in scan["peaks"]),
                     ("moved %.1f deg to %s" % (
-                        np.degrees(np.arccos(np.clip(np.dot(found, s["direction"]), -1.0, 1.0))),
+                        angle_deg(found, s["direction"]),
                         np.round(s["direction"], 2).tolist())) if scan["moved"] else
                     "the search's direction kept", scan["seconds"]))
     start = choice.report.get("sh", {}).get("start")

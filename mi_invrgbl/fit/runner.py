@@ -36,6 +36,7 @@ import mitsuba as mi
 
 from . import outputs
 from ..physics.host_arrays import jit_array
+from ..physics.directions import angle_deg
 from .budget import (OUTPUT_RESERVE, TIMED, Budget, EarlyStop, Replan,
                      overrun_report, plan_stage, position_lr_factor, probe_batch_scale,
                      PLATEAU_LR_FACTOR, PLATEAU_REDUCTIONS, VALIDATION_SHARE, anneal_lr_factor,
@@ -573,11 +574,11 @@ def start_stage2(state: FitState, frozen, initialise=True):
         if "start_roughness" in si:
             sr = si["start_roughness"]
             def rough_name(r):
-                return ("as imported" if r is None else r.replace("_", " ") if isinstance(r, str)
-                        else "%.2g" % r)
+                return "as imported" if r is None else "%.2g" % r
             mix = sr.get("per_gaussian")
             state.log("[fit] roughness at stage 2's start: %s (validation PSNR %s%s)" % (
-                rough_name(sr["chosen"]), ", ".join(
+                "per gaussian" if sr["kind"] == "per_gaussian" else rough_name(sr["for_all"]),
+                ", ".join(
                     "%s %s dB" % (rough_name(c["roughness"]),
                                   "-" if c["psnr"] is None else "%.2f" % c["psnr"])
                     for c in sr["candidates"]),
@@ -719,7 +720,7 @@ def report_sun_refinement(ctx):
     d /= max(np.linalg.norm(d), 1e-12)
     d0 = np.asarray(sun["direction"], np.float64)
     d0 /= max(np.linalg.norm(d0), 1e-12)
-    moved = float(np.degrees(np.arccos(np.clip(d @ d0, -1.0, 1.0))))
+    moved = angle_deg(d, d0)
     sun["fitted_direction"], sun["moved_deg"] = d.tolist(), moved
     if moved > 0:
         ctx.log("[fit] sun direction refined in stage 2: %s -> %s (%.1f deg)"

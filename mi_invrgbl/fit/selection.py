@@ -90,20 +90,31 @@ SUN_RATIOS = np.array([0.0, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0, 
 class PatchRegression:
     """Within-patch least squares of log luminance on ``log(a + rho s)``.
 
-    ``weights`` (how much each Gaussian is seen) weight the residuals.
+    ``weights`` (how much each Gaussian is seen) weight the residuals. A
+    Gaussian whose luminance (or weight) is not finite is left out with
+    weight 0: one NaN colour would otherwise make every gain NaN, and the
+    search's ``argmax`` then picks the first direction whatever the shading.
     """
 
     def __init__(self, luminance, patches, weights=None):
-        self.y = np.log(np.maximum(luminance, 1e-4))
+        luminance = np.asarray(luminance, np.float64)
+        w = np.ones_like(luminance) if weights is None else np.asarray(weights, np.float64)
+        finite = np.isfinite(luminance) & np.isfinite(w)
+        self.y = np.log(np.maximum(np.where(finite, luminance, 1.0), 1e-4))
         self.patches = patches
-        self.w = np.ones_like(self.y) if weights is None else np.asarray(weights, np.float64)
+        self.w = np.where(finite, w, 0.0)
         self.wsum = np.bincount(patches, self.w)
 
     def residual(self, v):
-        """Weighted mean square of ``v`` after removing each patch's weighted mean."""
+        """Weighted mean square of ``v`` after removing each patch's weighted
+        mean (0 where no Gaussian has weight; left-out Gaussians' ``v`` unread)."""
+        total = float(np.sum(self.w))
+        if not total > 0:
+            return 0.0
+        v = np.where(self.w > 0, v, 0.0)
         mean = np.bincount(self.patches, self.w * v) / np.maximum(self.wsum, 1e-12)
         r = v - mean[self.patches]
-        return float(np.sum(self.w * r * r) / np.sum(self.w))
+        return float(np.sum(self.w * r * r) / total)
 
     def fit(self, s, ambient=None):
         """Best ``rho`` for shading ``ambient + rho s``; returns (gain, rho).

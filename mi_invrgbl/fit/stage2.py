@@ -532,7 +532,11 @@ class Stage2:
             rr = trials[i][1]
             return [had[n] if rr is None else dr.full(mi.Float, rr, model.nodes[n].count)
                     for n in names]
-        entry = {"scored_on": "validation", "chosen": r,
+        # "kind" says which start stage 2 goes on from: the imported
+        # roughness, one of START_ROUGHNESS for all ("for_all" names it;
+        # None = as imported) or a roughness per Gaussian.
+        entry = {"scored_on": "validation", "kind": "as_imported" if r is None else "for_all",
+                 "for_all": r,
                  "candidates": [{"roughness": rr, "psnr": sc if np.isfinite(sc) else None}
                                 for sc, rr, _ in trials]}
         mixed = self._per_gaussian_roughness(trials, errors, best, per_node)
@@ -546,7 +550,7 @@ class Stage2:
             entry["per_gaussian"] = {"psnr": mix_score if np.isfinite(mix_score) else None,
                                      "shares": shares, "kept": kept_mix}
             if kept_mix:
-                entry["chosen"] = "per_gaussian"
+                entry["kind"] = "per_gaussian"
                 rep["start_roughness"] = entry
                 return rep
             current = None

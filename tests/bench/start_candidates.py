@@ -29,6 +29,8 @@ import tempfile
 
 import numpy as np
 
+from mi_invrgbl.physics.directions import angle_deg
+
 
 class Recorded(Exception):
     """Ends the fit once the starts are recorded."""
@@ -47,11 +49,6 @@ def turned(d, degrees, about_vertical):
         elev = np.arcsin(np.clip(d[2], -1, 1)) - t
         out = np.cos(elev) * h + np.sin(elev) * np.array([0.0, 0.0, 1.0])
     return (out / np.linalg.norm(out)).tolist()
-
-
-def angle(a, b):
-    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    return float(np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1))))
 
 
 def main():
@@ -100,7 +97,7 @@ def main():
                 if level == "selection" and not shading_init.facings_overruled(source):
                     continue     # (the same start as the facings')
                 rows.append({"offered": label, "level": level, "source": source,
-                             "direction": list(map(float, d)), "angle_deg": angle(d, truth),
+                             "direction": list(map(float, d)), "angle_deg": angle_deg(d, truth),
                              "irradiance": float(np.asarray(rep["sun_irradiance"]) @ LUMINANCE),
                              "psnr": float(self._start_score(rep)),
                              "spread": rep.get("albedo_spread")})

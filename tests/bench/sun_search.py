@@ -31,7 +31,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from start_candidates import angle  # noqa: E402  (degrees between two directions)
+from mi_invrgbl.physics.directions import angle_deg  # noqa: E402
 
 
 class Recorded(Exception):
@@ -73,12 +73,12 @@ def main():
             scan = r.get("scan", {})
             found = scan.get("found", {"direction": r["direction"], "gain": r["gain"]})
             row = {"gaussians": label, "use_sun": r["use_sun"],
-                   "found_deg": angle(found["direction"], truth), "found_gain": found["gain"],
-                   "sharpened_deg": angle(r["direction"], truth),
+                   "found_deg": angle_deg(found["direction"], truth), "found_gain": found["gain"],
+                   "sharpened_deg": angle_deg(r["direction"], truth),
                    "gain": max([found["gain"]] + [q["gain"] for q in scan.get("peaks", [])]),
                    "moved": scan.get("moved"),
-                   "alternatives_deg": [angle(a, truth) for a in r["alternatives"]],
-                   "peaks": [(angle(q["direction"], truth), q["gain"]) for q in scan.get("peaks", [])],
+                   "alternatives_deg": [angle_deg(a, truth) for a in r["alternatives"]],
+                   "peaks": [(angle_deg(q["direction"], truth), q["gain"]) for q in scan.get("peaks", [])],
                    "seconds": total, "sharpen_seconds": scan.get("seconds", 0.0)}
             rows.append(row)
             print("[sun] %-16s search %5.1f deg gain %.4f -> sharpened %5.1f deg gain %.4f  "
