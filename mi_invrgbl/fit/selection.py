@@ -104,17 +104,20 @@ class PatchRegression:
         self.patches = patches
         self.w = np.where(finite, w, 0.0)
         self.wsum = np.bincount(patches, self.w)
+        # Computed once: residual() runs per candidate and sun ratio.
+        self.total = float(np.sum(self.w))
+        self.left_out = None if finite.all() else ~finite
 
     def residual(self, v):
         """Weighted mean square of ``v`` after removing each patch's weighted
         mean (0 where no Gaussian has weight; left-out Gaussians' ``v`` unread)."""
-        total = float(np.sum(self.w))
-        if not total > 0:
+        if not self.total > 0:
             return 0.0
-        v = np.where(self.w > 0, v, 0.0)
+        if self.left_out is not None:
+            v = np.where(self.left_out, 0.0, v)
         mean = np.bincount(self.patches, self.w * v) / np.maximum(self.wsum, 1e-12)
         r = v - mean[self.patches]
-        return float(np.sum(self.w * r * r) / total)
+        return float(np.sum(self.w * r * r) / self.total)
 
     def fit(self, s, ambient=None):
         """Best ``rho`` for shading ``ambient + rho s``; returns (gain, rho).
