@@ -182,7 +182,7 @@ def coated_corner_meshes(max_depth):
     d = mesh_corner(max_depth)
     for name, albedo in (("floor", ALBEDO_FLOOR), ("wall", ALBEDO_WALL)):
         d[name]["bsdf"] = {"type": "roughplastic", "distribution": "ggx", "alpha": COAT_ROUGHNESS,
-                           "int_ior": 1.5, "ext_ior": 1.0, "specular_reflectance": 0.0,
+                           "int_ior": 1.5, "ext_ior": 1.0,
                            "diffuse_reflectance": {"type": "rgb", "value": list(albedo)}}
     return d
 
@@ -190,11 +190,12 @@ def coated_corner_meshes(max_depth):
 def test_coated_bounce_leaves_its_source_through_the_coat():
     """Under a coat (``diffuse_fresnel``) the light a Gaussian passes on
     leaves it through its coat, as its light towards the camera does, and
-    enters the receiver through its coat, as direct light does. The
-    reference is the ``roughplastic`` corner with its specular lobe off
-    (``specular_reflectance`` 0; its diffuse lobe keeps the coat), since
-    the bounce passes on diffuse light only. Measured: 6-7 % high (3.8x
-    before the coat was applied to the bounce)."""
+    enters the receiver through its coat, as direct light does, and the
+    receiver's specular lobe reflects it too. The reference is the
+    ``roughplastic`` corner. What the bounce leaves out, the blockers' own
+    specular light passed on, keeps it low. Measured: 8-15 % low (18-29 %
+    with the lobe blind to the blockers; 3.8x high before the coat was
+    applied to the bounce)."""
     g0, g1 = render(coated_corner_gaussians(0), 4), render(coated_corner_gaussians(1), 4)
     m2, m3 = render(coated_corner_meshes(2), 2048), render(coated_corner_meshes(3), 2048, seed=1)
     inside = inside_pixels(coated_corner_meshes(2), g0)
@@ -204,4 +205,54 @@ def test_coated_bounce_leaves_its_source_through_the_coat():
     rel = bounce_g / bounce_m - 1
     print("coated bounce share of direct %s; rel err %s" % (share, rel))
     assert np.all(share > 0.02)
-    assert np.all(np.abs(rel) < 0.15)
+    assert np.all(np.abs(rel) < 0.2)
+
+
+GLOSSY_FLOOR = dict(albedo=(0.05, 0.05, 0.05), roughness=0.1)
+BRIGHT_WALL = dict(albedo=(0.8, 0.8, 0.8), roughness=1.0)
+
+
+def glossy_corner_gaussians(bounces, samples=64):
+    floor, _ = layer(extent=1.0, spacing=0.08, **GLOSSY_FLOOR)
+    wall, _ = layer(extent=1.0, spacing=0.08, shape_id="wall", **BRIGHT_WALL)
+    wall["to_world"] = wall_transform()
+    return {"type": "scene",
+            "integrator": {"type": "invrgbl", "samples": samples, "bounces": bounces, "f0": 0.04},
+            "floor": floor, "wall": wall, "sky": sky(sun_direction=SUN),
+            "sensor": camera([0.3, -3.5, 1.6], [0, 0, 0.4], size=48)}
+
+
+def glossy_corner_meshes(max_depth):
+    ct = lambda m: {"type": "cooktorrance", "albedo": list(m["albedo"]),  # noqa: E731
+                    "roughness": m["roughness"], "f0": 0.04}
+    d = mesh_corner(max_depth)
+    d["floor"]["bsdf"], d["wall"]["bsdf"] = ct(GLOSSY_FLOOR), ct(BRIGHT_WALL)
+    return d
+
+
+def test_a_glossy_floor_mirrors_the_wall_beside_it():
+    """A dark glossy floor (glass-like: albedo 0.05, roughness 0.1, f0 0.04)
+    beside a bright sunlit wall: most of the light the floor sends the
+    camera after one bounce is the wall's image in its specular lobe, which
+    the bounce brings to the lobe sample by sample. Reference: the
+    ``cooktorrance`` corner, ``path`` max_depth 3 minus 2, floor pixels.
+    The wall's own specular light, which the bounce leaves out, is small
+    here (f0 0.04, roughness 1). Measured: 5 % low in each channel; with
+    the lobe reading the sky alone (blockers black to it) 87 % low."""
+    g0, g1 = render(glossy_corner_gaussians(0), 4), render(glossy_corner_gaussians(1), 4)
+    m2, m3 = render(glossy_corner_meshes(2), 2048), render(glossy_corner_meshes(3), 2048, seed=1)
+    mesh = glossy_corner_meshes(2)
+    inside = inside_pixels(mesh, g0)
+    o, d = pixel_rays(mi.load_dict(mesh))
+    # The floor's pixels: their rays meet z = 0 before the wall's plane.
+    t = -o[..., 2] / np.where(d[..., 2] < -1e-6, d[..., 2], -1e-6)
+    y = o[..., 1] + t * d[..., 1]
+    floor = inside & (d[..., 2] < 0) & (y < 0.45)
+    assert floor.sum() > 100
+    bounce_g = (g1 - g0)[floor][:, RGB].mean(0)
+    bounce_m = (m3 - m2)[floor][:, RGB].mean(0)
+    rel = bounce_g / bounce_m - 1
+    print("glossy floor: bounce %s against %s (rel %s); share of direct %s"
+          % (bounce_g, bounce_m, rel, bounce_m / m2[floor][:, RGB].mean(0)))
+    assert np.all(bounce_m / m2[floor][:, RGB].mean(0) > 0.2)
+    assert np.all(np.abs(rel) < 0.12)

@@ -17,10 +17,13 @@ hits it:
   the bounce is ``W (albedo * E / pi)``, repeated per extra bounce. Without
   it, light that arrives after a bounce (7-9 % of the synthetic street's,
   ``tests/bench/direct_light_bound.py``) can only be explained as brighter
-  albedo. Meshes block sky directions but reflect nothing, and the bounce is
-  diffuse only (its specular part is left out). Under a coat
-  (``diffuse_fresnel``) each entry of ``W`` takes the light out through the
-  blocker's coat and in through the receiver's.
+  albedo. Meshes block sky directions but reflect nothing, and the light
+  passed on is the blockers' diffuse light (their specular part is left
+  out). Under a coat (``diffuse_fresnel``) each entry of ``W`` takes the
+  light out through the blocker's coat and in through the receiver's. The
+  receiver's specular lobe reflects it too, sample by sample
+  (:meth:`GaussianLighting.blocked_radiance`; the lobe's sum is
+  :func:`~.specular_albedo.sky_specular`).
 
 Visibility is traced without derivatives through Gaussians (transmittance)
 and meshes (blocked) and cached while geometry and lights stay put; the
@@ -352,6 +355,9 @@ class LightingCache:
     #: light out and in through its coat at those angles.
     bounce_cos_source: mi.Float = None
     bounce_cos_target: mi.Float = None
+    #: Per entry, which of the receiver's M sky samples it lies on: the
+    #: specular lobe reads the light each sample brings.
+    bounce_slot: mi.UInt32 = None
     #: (G, 3) unit normals the sky directions were traced about. A Gaussian's
     #: M directions turn with its normal; visibility traced for the old ones
     #: is not the new ones' (:func:`retrace_turned`).
@@ -381,6 +387,7 @@ class LightingCache:
                              bounce_weight=self.bounce_weight,
                              bounce_cos_source=self.bounce_cos_source,
                              bounce_cos_target=self.bounce_cos_target,
+                             bounce_slot=self.bounce_slot,
                              normals=None if self.normals is None else self.normals.copy(),
                              boxes=None if self.boxes is None else list(self.boxes),
                              surface_boxes=None if self.surface_boxes is None
@@ -504,28 +511,32 @@ def trace_sky(scene, nodes, table, samples, pattern=0, bounces=0, gaussians=None
         # The sample's cosine to the receiver's normal (its local z).
         cos_target = dr.dot(dr.gather(mi.Vector3f, dirs, ray),
                             dr.normalize(dr.gather(mi.Vector3f, dr.detach(table.normal), target)))
-        return vis, BounceEntries(target, source, w / M, cos_source, cos_target)
+        return vis, BounceEntries(target, source, w / M, cos_source, cos_target, ray % M)
 
 
 class BounceEntries(NamedTuple):
     """Entries of the bounce matrix W that one trace adds: receiving and
     blocking Gaussian, blend weight / M, and the cosines where the light
-    leaves the blocker and arrives at the receiver (:class:`LightingCache`)."""
+    leaves the blocker and arrives at the receiver, and the receiver's sky
+    sample it lies on (:class:`LightingCache`)."""
     target: mi.UInt32
     source: mi.UInt32
     weight: mi.Float
     cos_source: mi.Float
     cos_target: mi.Float
+    slot: mi.UInt32
 
 
 #: The cache's fields that hold W, in :class:`BounceEntries`' order.
 BOUNCE_FIELDS = ("bounce_target", "bounce_source", "bounce_weight", "bounce_cos_source",
-                 "bounce_cos_target")
+                 "bounce_cos_target", "bounce_slot")
+#: Their Dr.Jit types.
+BOUNCE_TYPES = (mi.UInt32, mi.UInt32, mi.Float, mi.Float, mi.Float, mi.UInt32)
 
 
 def set_bounce(cache, entries):
     """Hold ``entries`` (a :class:`BounceEntries` or None) as ``cache``'s W."""
-    for name, value in zip(BOUNCE_FIELDS, entries if entries is not None else [None] * 5):
+    for name, value in zip(BOUNCE_FIELDS, entries if entries is not None else [None] * 6):
         setattr(cache, name, value)
     if entries is not None:
         dr.eval(*entries)
@@ -547,8 +558,7 @@ def _replace_rows(cache: LightingCache, gaussians, M, new_vis, bounce, normals):
         if bounce is not None:
             parts.append([np.array(a) for a in bounce])
         columns = [np.concatenate(col) for col in zip(*parts)]
-        set_bounce(cache, BounceEntries(*[jit_array(mi.UInt32 if i < 2 else mi.Float, c)
-                                          for i, c in enumerate(columns)]))
+        set_bounce(cache, BounceEntries(*[jit_array(T, c) for T, c in zip(BOUNCE_TYPES, columns)]))
     # A new array rather than a scatter into the cached one: lighting built
     # before this call may still read the old one. It is handed over padded
     # (:mod:`.host_arrays`): a NumPy buffer that ends at an unmapped page
@@ -849,21 +859,63 @@ class GaussianLighting:
             if diffuse_fresnel:
                 cos_l = cos_l * coat.transmission(cos_l, coat_roughness, f0)
             self.direct += e_l * cos_l * dr.inv_pi
-        self.indirect = self.bounce_light(nodes) if self.bounces > 0 else dr.zeros(mi.Color3f, G)
+        #: Radiance arriving along each sky sample (G * M, Gaussian-major):
+        #: the sky where it is open, with ``bounces`` also the light the
+        #: blocking Gaussians reflect towards it. The specular lobe reflects
+        #: it (a window mirrors the facade across the street, not black).
+        self.reflected_radiance = self.sky_radiance
+        if self.bounces > 0:
+            self.indirect, leaving = self.bounce_light(nodes)
+            if M and self.cache.bounce_target is not None:
+                self.reflected_radiance = self.sky_radiance + self.blocked_radiance(leaving)
+        else:
+            self.indirect = dr.zeros(mi.Color3f, G)
         self.diffuse = self.direct + self.indirect
 
     def bounce_light(self, nodes):
-        """E / pi that reaches each Gaussian after 1..``bounces`` diffuse bounces."""
+        """``(indirect, leaving)``: E / pi that reaches each Gaussian after
+        1..``bounces`` diffuse bounces, and the diffuse radiance each one then
+        sends out, ``albedo * (direct + indirect)`` (under its coat)."""
         table, G = self.table, self.table.total
-        if self.cache.bounce_target is None:
-            return dr.zeros(mi.Color3f, G)
         albedo = mi.Color3f(hitlib.gather_attribute(nodes, "albedo", table.ids, table.prims,
                                                     mi.Bool(True)))
         indirect = dr.zeros(mi.Color3f, G)
-        for _ in range(self.bounces):
-            # Radiance leaving each Gaussian (Lambertian), passed along W.
-            indirect = self.pass_on(albedo * (self.direct + indirect))
-        return indirect
+        if self.cache.bounce_target is not None:
+            for _ in range(self.bounces):
+                # Radiance leaving each Gaussian (Lambertian), passed along W.
+                indirect = self.pass_on(albedo * (self.direct + indirect))
+        return indirect, albedo * (self.direct + indirect)
+
+    def blocked_radiance(self, leaving, through_coat=True):
+        """Per sky sample (G * M), the radiance the Gaussians blocking it send
+        along it: ``leaving`` (each Gaussian's diffuse radiance under its
+        coat) taken out through the blocker's coat at the sample's angle,
+        times its blend weight on the sample's ray. Its receiver's coat does
+        not dim it: the specular lobe reflects it off the coat's surface.
+        ``through_coat=False`` takes ``leaving`` as radiance already out of
+        its coat (as :meth:`pass_on`)."""
+        cache, M = self.cache, self.samples
+        out = [dr.zeros(mi.Float, self.table.total * M) for _ in range(3)]
+        if cache.bounce_target is None or not M:
+            return mi.Color3f(*out)
+        weight = cache.bounce_weight * M  # W holds the blend weight / M
+        if self.coat_roughness is not None and through_coat:
+            leaving = leaving * coat.inner_scale(self.coat_roughness, self.f0)
+            tau_out = dr.gather(mi.Float, self.coat_roughness, cache.bounce_source)
+            weight = weight * coat.transmission(cache.bounce_cos_source, tau_out, self.f0)
+        passed = dr.gather(mi.Color3f, leaving, cache.bounce_source) * weight
+        slot = cache.bounce_target * M + cache.bounce_slot
+        for c in range(3):
+            dr.scatter_reduce(dr.ReduceOp.Add, out[c], passed[c], slot)
+        return mi.Color3f(*out)
+
+    def reflect_blockers(self, leaving, through_coat=True):
+        """Let the specular lobe see ``leaving`` (one Color3f per Gaussian, as
+        :meth:`blocked_radiance`) in the sky samples other Gaussians block,
+        in place of the light the lighting found for them. Stage 2's start
+        passes stage 1's colours: the albedos that would give the blockers'
+        light are what the start is solving for."""
+        self.reflected_radiance = self.sky_radiance + self.blocked_radiance(leaving, through_coat)
 
     def pass_on(self, leaving, through_coat=True):
         """``W leaving``: E / pi at each Gaussian from the radiance ``leaving``

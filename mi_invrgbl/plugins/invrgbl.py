@@ -6,7 +6,7 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
-from ..physics import brdf, coat, hits as hitlib
+from ..physics import brdf, coat, hits as hitlib, specular_albedo
 from ..physics.lighting import (MAX_BOUNCES, GaussianLighting, GaussianTable, LightingCache,
                                 fibonacci_direction, geometry_key, hash_rotation_of, moving_shadows,
                                 point_lights, transmittance)
@@ -33,7 +33,8 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
      * - bounces
        - |int|
        - Diffuse bounces of light between Gaussians: a sky direction another
-         Gaussian blocks brings the light that Gaussian reflects (see
+         Gaussian blocks brings the light that Gaussian reflects diffusely,
+         to the diffuse term and to the specular lobe (see
          :mod:`mi_invrgbl.physics.lighting`). 0: direct sky and sun light
          only, as in the paper. (Default: 0)
      * - max_hits
@@ -213,17 +214,19 @@ class InvRGBLIntegrator(hitlib.ad_integrator_base()):
             e = dr.gather(mi.Color3f, e_l, gidx, active)
             cos_l = dr.maximum(mi.Frame3f.cos_theta(wl), 0.0)
             specular += e * cos_l * brdf.specular(wl, wo, tau, self.f0, self.shadowing)
-        # Specular sky: pi/M sum_i f_s(w_i, w_o) v_i L(w_i) over the Gaussian's samples.
+        # Specular sky: the lobe's albedo times the lobe-weighted mean of the
+        # Gaussian's M sky samples (specular_albedo.sky_specular; a plain
+        # pi/M sum misses a glossy lobe between the samples). The sample
+        # directions are a fixed spiral in each Gaussian's normal frame
+        # (lighting.sky_dirs = frame.to_world(spiral)); recomputing the local
+        # direction is exact and saves a differentiable gather per sample.
         M = lighting.samples
-        # The sample directions are a fixed spiral in each Gaussian's normal
-        # frame (lighting.sky_dirs = frame.to_world(spiral)); recomputing the
-        # local direction is exact and saves a differentiable gather per sample.
-        rot = hash_rotation_of(gidx, lighting.pattern)
-        for i in range(M):
-            j = gidx * M + i
-            wi = fibonacci_direction(mi.Float(i), M, rot)
-            li = dr.gather(mi.Color3f, lighting.sky_radiance, j, active)
-            specular += li * brdf.specular(wi, wo, tau, self.f0, self.shadowing) * (dr.pi / M)
+        if M:
+            rot = hash_rotation_of(gidx, lighting.pattern)
+            specular += specular_albedo.sky_specular(
+                lambda i: fibonacci_direction(mi.Float(i), M, rot),
+                lambda i: dr.gather(mi.Color3f, lighting.reflected_radiance, gidx * M + i, active),
+                wo, tau, M, self.f0, self.shadowing)
         if lighting.diffuse_fresnel:
             # Diffuse light leaves through the coat too (the way in is in
             # the lighting's diffuse term); the transmission is two-sided,
