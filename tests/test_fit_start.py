@@ -242,19 +242,32 @@ def test_stage2_start_leaves_the_specular_light_out_of_the_albedo(scene_path, tm
     takes the specular part (:meth:`Stage2.seen_by_cameras`) out and is solved
     with the render's own bounce light, so the start renders stage 1's
     picture: its pixels are neither brighter nor darker on average, and
-    closer than with an albedo that takes the whole colour as diffuse light."""
+    closer than with an albedo that takes the whole colour as diffuse light.
+    The specular part includes what the lobe reflects of the Gaussians
+    blocking its sky samples (as stage 1 coloured them), as the render's
+    lobe reflects their light: measured, RMS 0.0065 against 0.0070 with the
+    lobe blind to them (specular share 3.5 % against 2.8 %)."""
     from mi_invrgbl.fit.stage2 import Stage2
 
     si, bias, rmse = start_against_stage1(scene_path, tmp_path / "with")
 
-    def no_specular(self, names, frames=8, transmission=False):
+    def no_specular(self, names, frames=8, transmission=False, blockers=None):
         count = sum(self.ctx.model.nodes[n].count for n in names)
         return np.zeros((count, 3)), np.ones((count, 1))
 
+    original = Stage2.seen_by_cameras
+
+    def blind_to_blockers(self, names, frames=8, transmission=False, blockers=None):
+        return original(self, names, frames, transmission)
+
+    monkeypatch.setattr(Stage2, "seen_by_cameras", blind_to_blockers)
+    si_b, bias_b, rmse_b = start_against_stage1(scene_path, tmp_path / "blind")
     monkeypatch.setattr(Stage2, "seen_by_cameras", no_specular)
     _, bias0, rmse0 = start_against_stage1(scene_path, tmp_path / "without")
-    print(si["specular_share"], bias, rmse, bias0, rmse0)
+    print(si["specular_share"], bias, rmse, si_b["specular_share"], bias_b, rmse_b, bias0, rmse0)
     assert 0.0 < si["specular_share"] < 1.0
+    assert si["specular_share"] > si_b["specular_share"]
+    assert rmse < rmse_b
     assert bias0 > 0.004            # the specular light on top: too bright
     assert abs(bias) < 0.003
     assert rmse < 0.7 * rmse0
@@ -312,8 +325,8 @@ def test_stage2_start_with_the_diffuse_light_through_a_coat(scene_path, tmp_path
     n, median, mean = start("coat")
     original = Stage2.seen_by_cameras
 
-    def way_out_as_1(self, names, frames=8, transmission=False):
-        spec, t_out = original(self, names, frames, transmission)
+    def way_out_as_1(self, names, frames=8, transmission=False, blockers=None):
+        spec, t_out = original(self, names, frames, transmission, blockers)
         return spec, np.ones_like(t_out)
 
     monkeypatch.setattr(Stage2, "seen_by_cameras", way_out_as_1)

@@ -704,7 +704,9 @@ class Stage2:
             # stage 1's colour is diffuse plus specular, and an albedo that
             # reproduced the whole colour as diffuse light started the
             # KITTI excerpt 0.8 dB below stage 1, 70 % of the pixels too bright.
-            spec, t_out = self.seen_by_cameras(names, transmission=fresnel)
+            # The lobe sees the Gaussians blocking its sky samples as stage 1
+            # coloured them (their albedo is what this start solves for).
+            spec, t_out = self.seen_by_cameras(names, transmission=fresnel, blockers=colour)
             report["specular_share"] = (float(np.sum((spec[seen] @ LUMINANCE)) / max(
                 float(np.sum(colour[seen] @ LUMINANCE)), 1e-12)) if seen.any() else 0.0)
             # Where the fitted light is too dark for the colours stage 1
@@ -789,7 +791,7 @@ class Stage2:
             model.nodes[name].values["albedo"] = jit_array(mi.Float, a)
         self.build_optimizer()
 
-    def seen_by_cameras(self, names, frames=8, transmission=False):
+    def seen_by_cameras(self, names, frames=8, transmission=False, blockers=None):
         """What the training cameras see of each Gaussian, averaged over their
         views: per Gaussian (rows in ``names``' order), the specular radiance it
         sends to the training cameras under the scene's current light,
@@ -800,8 +802,12 @@ class Stage2:
         (:func:`~mi_invrgbl.physics.coat.way_out`) with ``transmission``
         (``diffuse_fresnel``), else ones.
 
-        The specular part of the shading does not depend on the albedo, so it
-        is rendered once with the albedo at zero (no diffuse, no bounce)."""
+        The specular part of the shading does not depend on the receiver's
+        albedo, so it is rendered once with the albedo at zero (no diffuse,
+        no bounce). ``blockers`` (per Gaussian, that order: radiance out of
+        its coat, e.g. stage 1's colours), with bounces, is what the lobe
+        sees of the Gaussians that block its sky samples (a window mirrors
+        the facade across the street); without it they are black to it."""
         ctx = self.ctx
         vals = self.model_values()
         for n in names:
@@ -810,6 +816,9 @@ class Stage2:
         acc, wsum, tsum = None, None, None
         with dr.suspend_grad():
             for f, fh, nodes, lighting, gi, w in self._training_hits(frames, vals):
+                if blockers is not None and lighting.bounces > 0:
+                    lighting.reflect_blockers(mi.Color3f(blockers.T.astype(np.float32)),
+                                              through_coat=False)
                 g = frozen_gaussian_hits(nodes, f.camera.rays, fh)
                 colour, _, n, tau, _ = ctx.camera_integrator.shade_gaussian_hits(
                     lighting, nodes, f.camera.rays, fh, g)
