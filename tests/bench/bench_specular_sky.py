@@ -110,13 +110,15 @@ def timed(method, mu, tau, M, points):
     return best * 1e3
 
 
-def main():
+def main(argv=None):
+    """Print the table; returns its rows as dicts."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--points", type=int, default=100000)
     ap.add_argument("--samples", type=int, nargs="+", default=[16, 32])
     ap.add_argument("--roughness", type=float, nargs="+", default=[0.05, 0.1, 0.3, 0.7, 1.0])
     ap.add_argument("--cos", type=float, nargs="+", default=[0.9, 0.5, 0.2])
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    rows = []
     print("%s, %d Gaussians, f0 %.2f, %s shadowing" % (mi.variant(), args.points, F0, SHADOWING))
     print("%3s %5s %5s %10s | %9s %8s %10s | %9s %8s %10s" % (
         "M", "rough", "cos_o", "reference", "plain RMS", "bias", "ms", "split RMS", "bias", "ms"))
@@ -132,6 +134,9 @@ def main():
                                   timed(method, mu, tau, M, args.points)))
                 print("%3d %5.2f %5.2f %10.5f | %9.3f %+8.3f %10.1f | %9.3f %+8.3f %10.1f" % (
                     M, tau, mu, ref, *cells[0], *cells[1]))
+                rows.append({"samples": M, "roughness": tau, "cos_o": mu, "reference": ref,
+                             "plain": cells[0], "split": cells[1]})
+    return rows
 
 
 if __name__ == "__main__":

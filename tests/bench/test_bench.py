@@ -18,6 +18,19 @@ def test_bench_render_quick():
 
 
 @pytest.mark.bench
+def test_bench_specular_sky_quick():
+    import bench_specular_sky
+    rows = bench_specular_sky.main(["--points", "4000", "--samples", "16", "--roughness", "0.1",
+                                    "1.0", "--cos", "0.9"])
+    glossy, rough = rows
+    assert all(r["reference"] > 0 and r["plain"][2] > 0 and r["split"][2] > 0 for r in rows)
+    # Per Gaussian the split sum resolves a glossy lobe the plain sum misses
+    # (measured 0.10 against 0.35) and matches it for a rough one.
+    assert glossy["split"][0] < 0.5 * glossy["plain"][0]
+    assert rough["split"][0] < 1.2 * rough["plain"][0]
+
+
+@pytest.mark.bench
 def test_bench_fit_quick():
     import bench_fit
     rows = bench_fit.main(["--quick", "--runs", "3", "--ref-runs", "2"])
