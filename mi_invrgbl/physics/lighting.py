@@ -725,6 +725,14 @@ def retrace_turned(scene, nodes, cache: LightingCache, samples, pattern=0, bounc
     return int(turned.size)
 
 
+def _add_into(values, index, size):
+    """A Color3f of ``size`` zeros with ``values`` (Color3f) added at ``index``."""
+    out = [dr.zeros(mi.Float, size) for _ in range(3)]
+    for c in range(3):
+        dr.scatter_reduce(dr.ReduceOp.Add, out[c], values[c], index)
+    return mi.Color3f(*out)
+
+
 class GaussianLighting:
     """Incident light per Gaussian for one render (see module docstring)."""
 
@@ -831,6 +839,10 @@ class GaussianLighting:
         sky_in = self.sky_radiance
         #: Per Gaussian, the roughness of its coat (``diffuse_fresnel``), else None.
         self.coat_roughness = coat_roughness = None
+        # Per entry of W, the blocker's coat transmission on the way out
+        # (:meth:`_from_blockers`; computed once, used by the bounce and
+        # by the specular lobe's blocked radiance).
+        self._way_out = None
         if diffuse_fresnel:
             self.coat_roughness = coat_roughness = hitlib.gather_attribute(
                 nodes, "roughness", table.ids, table.prims, mi.Bool(True))
@@ -895,19 +907,11 @@ class GaussianLighting:
         ``through_coat=False`` takes ``leaving`` as radiance already out of
         its coat (as :meth:`pass_on`)."""
         cache, M = self.cache, self.samples
-        out = [dr.zeros(mi.Float, self.table.total * M) for _ in range(3)]
         if cache.bounce_target is None or not M:
-            return mi.Color3f(*out)
-        weight = cache.bounce_weight * M  # W holds the blend weight / M
-        if self.coat_roughness is not None and through_coat:
-            leaving = leaving * coat.inner_scale(self.coat_roughness, self.f0)
-            tau_out = dr.gather(mi.Float, self.coat_roughness, cache.bounce_source)
-            weight = weight * coat.transmission(cache.bounce_cos_source, tau_out, self.f0)
-        passed = dr.gather(mi.Color3f, leaving, cache.bounce_source) * weight
-        slot = cache.bounce_target * M + cache.bounce_slot
-        for c in range(3):
-            dr.scatter_reduce(dr.ReduceOp.Add, out[c], passed[c], slot)
-        return mi.Color3f(*out)
+            return dr.zeros(mi.Color3f, self.table.total * M)
+        # W holds the blend weight / M.
+        return _add_into(self._from_blockers(leaving, through_coat) * M,
+                         cache.bounce_target * M + cache.bounce_slot, self.table.total * M)
 
     def reflect_blockers(self, leaving, through_coat=True):
         """Let the specular lobe see ``leaving`` (one Color3f per Gaussian, as
@@ -932,9 +936,32 @@ class GaussianLighting:
         passes ``leaving`` as radiance already out of its coat (stage 2's
         start passes stage 1's colours on)."""
         cache, G = self.cache, self.table.total
-        out = [dr.zeros(mi.Float, G) for _ in range(3)]
         if cache.bounce_target is None:
-            return mi.Color3f(*out)
+            return dr.zeros(mi.Color3f, G)
+        passed = self._from_blockers(leaving, through_coat)
+        if self.coat_roughness is not None:
+            tau_in = dr.gather(mi.Float, self.coat_roughness, cache.bounce_target)
+            passed = passed * coat.transmission(cache.bounce_cos_target, tau_in, self.f0)
+        return _add_into(passed, cache.bounce_target, G)
+
+    def _from_blockers(self, leaving, through_coat=True):
+        """Per entry of W: ``leaving`` (per Gaussian) at the entry's blocker,
+        taken out through that blocker's coat at the angle the entry's sky
+        ray leaves it (with a coat and ``through_coat``), times the entry's
+        weight (blend weight / M). What :meth:`pass_on` brings in through
+        the receivers' coats and :meth:`blocked_radiance` hands the lobe."""
+        cache = self.cache
+        weight = cache.bounce_weight
+        if self.coat_roughness is not None and through_coat:
+            # way_out = transmission(cos) * inner_scale(roughness): the
+            # second depends on the source alone, so it is applied once
+            # per Gaussian, not once per entry (there are far more).
+            leaving = leaving * coat.inner_scale(self.coat_roughness, self.f0)
+            if self._way_out is None:
+                tau_out = dr.gather(mi.Float, self.coat_roughness, cache.bounce_source)
+                self._way_out = coat.transmission(cache.bounce_cos_source, tau_out, self.f0)
+            weight = weight * self._way_out
+        return dr.gather(mi.Color3f, leaving, cache.bounce_source) * weight
         weight = cache.bounce_weight
         if self.coat_roughness is not None:
             tau_in = dr.gather(mi.Float, self.coat_roughness, cache.bounce_target)
