@@ -181,6 +181,62 @@ def test_stage2_start_scores_the_facings_irradiance_against_the_selection(scene_
     assert si["sun_irradiance_from"] == sources[best]
 
 
+def test_roughness_starts_keep_the_sun_level_the_kept_start_took(scene_path, tmp_path,
+                                                                 monkeypatch):
+    """The starts made again under each start roughness keep the sun level
+    (facings or selection) of the start they remake, even where the rules
+    would decide otherwise under another roughness: here the rules say
+    "facings" for the first start and "selection" for every later one, and
+    the start stage 2 goes on from still has the facings' irradiance."""
+    from mi_invrgbl.fit import shading_init
+    from mi_invrgbl.fit.stage2 import Stage2
+    original = shading_init.reconcile_sun_irradiance
+    made = []            # keep, per start made
+
+    def flipping(estimate, level, keep=None):
+        if keep is None and estimate is not None:
+            keep = "selection" if made else "facings"
+        return original(estimate, level, keep)
+    start_under = Stage2.start_under
+
+    def recording(self, sky, direction, keep=None):
+        report = start_under(self, sky, direction, keep)
+        made.append(keep)
+        return report
+    monkeypatch.setattr(shading_init, "reconcile_sun_irradiance", flipping)
+    monkeypatch.setattr(Stage2, "start_under", recording)
+    metrics = run_fit(scene_path, small_config(tmp_path, sun="on", render_samples="8",
+                                               stage1_iterations=30, stage2_iterations=4),
+                      log=lambda *a: None)
+    si = metrics["selection"]["shading_init"]
+    assert "start_candidates" not in si           # one sun, the facings not overruled
+    assert len(made) >= 3 and made[0] is None     # the first start, then the roughness ones
+    assert all(k == "facings" for k in made[1:])
+    assert si["sun_irradiance_from"] == "facings"
+
+
+def test_a_sun_level_to_keep_overrides_the_rules():
+    """``keep`` takes the facings' estimate or the selection's level
+    whatever the two bounds say; an unknown one is refused."""
+    from mi_invrgbl.physics.colour import LUMINANCE
+    from mi_invrgbl.fit.shading_init import (MAX_EXCESS, facings_overruled, kept_sun_level,
+                                             reconcile_sun_irradiance)
+    level = 2.0
+    agree = np.array([2.2, 2.5, 2.6])
+    too_bright = agree * (MAX_EXCESS + 1)
+    E, source = reconcile_sun_irradiance(too_bright, level, "facings")
+    assert source == "facings" and np.allclose(E, too_bright)
+    E, source = reconcile_sun_irradiance(agree, level, "selection")
+    assert facings_overruled(source) and np.isclose(E @ LUMINANCE, level)
+    # No facing estimate: the selection's level, whatever is kept.
+    E, source = reconcile_sun_irradiance(None, level, "facings")
+    assert np.allclose(E, level) and kept_sun_level(source) is None
+    assert kept_sun_level("facings") == "facings"
+    assert kept_sun_level(reconcile_sun_irradiance(too_bright, level)[1]) == "selection"
+    with pytest.raises(ValueError, match="keep"):
+        reconcile_sun_irradiance(agree, level, "trust")
+
+
 def start_against_stage1(scene_path, out, unclipped=False, **config):
     """Stage 2's start made on the fit tests' street (sun on, one ray per
     pixel): its ``shading_init`` report and the mean and RMS difference of

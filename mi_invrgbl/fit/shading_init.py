@@ -110,7 +110,12 @@ MAX_DISAGREEMENT = 4.0
 MAX_EXCESS = 10.0
 
 
-def reconcile_sun_irradiance(estimate, selection_level):
+#: The sun levels one start may be told to keep (:func:`reconcile_sun_irradiance`'s
+#: ``keep``): None lets the two rules below decide.
+SUN_LEVELS = (None, "facings", "selection")
+
+
+def reconcile_sun_irradiance(estimate, selection_level, keep=None):
     """The sun irradiance stage 2 starts from: the facing estimate
     (:func:`estimate_sun_irradiance`) where it agrees with the lighting
     selection's level (``pi x`` its sun/sky ratio ``x`` the sky term),
@@ -119,16 +124,37 @@ def reconcile_sun_irradiance(estimate, selection_level):
     selection's level. The facing estimate rests on a median over a few facings and can
     collapse (one KITTI fit started from a sun of 0.09 against a selection
     level near 2, and stage 2 fell to 8 dB); the selection's ratio comes
-    from every seen Gaussian. Returns ``(E (3,), source)``.
+    from every seen Gaussian.
+
+    ``keep`` (one of :data:`SUN_LEVELS`) overrides the rules: "facings"
+    keeps the facing estimate whatever the selection says (the selection's
+    level only where there is none); "selection" takes the selection's
+    level even where the two agree. A start made again under other
+    roughness re-estimates the facings, and near a bound the rules could
+    flip: ``keep`` holds the decision made once per sun. Returns
+    ``(E (3,), source)``.
     """
+    if keep not in SUN_LEVELS:
+        raise ValueError("keep: %r is none of %s" % (keep, SUN_LEVELS))
     level = float(selection_level)
     if estimate is None:
         return np.full(3, max(level, 1e-3)), "selection (no facing with lit and shadowed Gaussians)"
     e = float(np.asarray(estimate) @ LUMINANCE)
-    if level > 0 and not (level / MAX_DISAGREEMENT <= e <= level * MAX_EXCESS):
+    agree = level <= 0 or level / MAX_DISAGREEMENT <= e <= level * MAX_EXCESS
+    if keep == "selection" or (keep is None and not agree):
         colour = np.asarray(estimate, np.float64) / e if e > 1e-6 else np.ones(3)
         return np.maximum(colour * level, 1e-3), "selection (facings gave %.3g)" % e
     return np.maximum(np.asarray(estimate, np.float64), 1e-3), "facings"
+
+
+def kept_sun_level(source):
+    """The ``keep`` (:data:`SUN_LEVELS`) that makes a start again with the
+    sun level a start's ``source`` says it took: "facings", "selection"
+    where the facings were overruled, None where there was no facing
+    estimate to choose from."""
+    if source == "facings":
+        return "facings"
+    return "selection" if facings_overruled(source) else None
 
 
 def facings_overruled(source):
@@ -182,11 +208,11 @@ def visibility_from_lidar_albedo(colour, sky_term, sun_irradiance, visibility, c
 
 
 def settle_sun_and_visibility(colour, ambient, sun_irradiance, source, traced, cos, normals,
-                              seen, lidar_albedo, selection_level):
+                              seen, lidar_albedo, selection_level, keep=None):
     """Alternate :func:`visibility_from_lidar_albedo` (correcting the
     ``traced`` visibility under the current irradiance) and
     :func:`estimate_sun_irradiance` (from the corrected groups, reconciled
-    with ``selection_level``) until the irradiance changes by less than
+    with ``selection_level`` and ``keep``) until the irradiance changes by less than
     :data:`SETTLED` (a fixed point within 3-4 rounds on the street), at most
     :data:`MAX_ROUNDS` times.
 
@@ -201,7 +227,7 @@ def settle_sun_and_visibility(colour, ambient, sun_irradiance, source, traced, c
         if estimate is None:
             break
         before = float(E @ LUMINANCE)
-        E, source = reconcile_sun_irradiance(estimate, selection_level)
+        E, source = reconcile_sun_irradiance(estimate, selection_level, keep)
         if abs(float(E @ LUMINANCE) - before) <= SETTLED * max(before, 1e-6):
             break
     return E, vis, source, lowered, raised

@@ -396,34 +396,42 @@ class Stage2:
         # from the selection's sky.
         sky = np.array(dr.detach(ctx.params[ctx.sky_key]), np.float32)
 
-        def start(d, trust):
-            return self.start_under(sky, d, trust)
+        def start(d, keep):
+            return self.start_under(sky, d, keep)
         if not ctx.use_sun:
-            report = start(None, False)
+            report = start(None, None)
             report = self._choose_roughness(report, self._start_score(report), True,
-                                            lambda: start(None, False))
+                                            lambda: start(None, None))
             self.build_optimizer()
             return self._with_scorings(report)
         directions = sun.get("alternatives") or [
             np.array(dr.detach(ctx.params[ctx.sun_dir_key]), np.float64).ravel().tolist()]
         trials = []
         for d in directions:
-            report = start(d, False)
-            trials.append((self._start_score(report), d, False, report))
+            report = start(d, None)
+            trials.append((self._start_score(report), d, report))
             if shading_init.facings_overruled(report.get("sun_irradiance_from", "")):
                 # The facings and the selection disagree on the sun's level
                 # (KITTI, 30-minute stage 1: facings 28-32, selection 2.3-2.5;
                 # the two rules' bounds are set on the street): the start
                 # under each decides.
-                report = start(d, True)
-                trials.append((self._start_score(report), d, True, report))
+                report = start(d, "facings")
+                trials.append((self._start_score(report), d, report))
         best = shading_init.choose_start([t[0] for t in trials],
-                                         [t[3].get("albedo_spread") for t in trials])
-        score, d, trust, report = trials[best]
+                                         [t[2].get("albedo_spread") for t in trials])
+        score, d, report = trials[best]
+        # The roughness starts keep the sun level this start took: each
+        # re-estimates the facings under its own roughness (the coat's
+        # transmission changes the effective cosines), and the bound can
+        # fall between two of them (on the street the facings gave 2.97
+        # and 3.04 against selection levels of 0.28-0.30, the bound 10x,
+        # in two runs). A start with no facing estimate pins nothing: its
+        # restarts decide again.
+        keep = shading_init.kept_sun_level(report.get("sun_irradiance_from", ""))
         # (Not made again here: the roughness choice makes it again only
         # where the imported roughness wins.)
         report = self._choose_roughness(report, score, best == len(trials) - 1,
-                                        lambda: start(d, trust))
+                                        lambda: start(d, keep))
         if len(trials) > 1:
             report["start_candidates"] = {
                 "scored_on": "validation", "chosen": best,
@@ -432,7 +440,7 @@ class Stage2:
                                 "sun_irradiance": r.get("sun_irradiance"),
                                 "albedo_spread": r.get("albedo_spread"),
                                 "psnr": sc if np.isfinite(sc) else None}
-                               for sc, dd, _, r in trials]}
+                               for sc, dd, r in trials]}
         sun["direction"] = list(map(float, d))
         self._unclip(report)
         self.build_optimizer()
@@ -480,16 +488,17 @@ class Stage2:
                               "seconds": round(self.start_scorings[1], 2)}
         return report
 
-    def start_under(self, sky, direction, trust_facings):
+    def start_under(self, sky, direction, keep=None):
         """One start (:meth:`_init_shading`) from the sky coefficients ``sky``
-        (numpy) under the sun ``direction`` (None: the scene's); returns its
-        report."""
+        (numpy) under the sun ``direction`` (None: the scene's), its sun level
+        as ``keep`` says (:func:`~.shading_init.reconcile_sun_irradiance`);
+        returns its report."""
         ctx = self.ctx
         ctx.params[ctx.sky_key] = jit_array(mi.Float, sky)
         if direction is not None:
             ctx.params[ctx.sun_dir_key] = mi.Vector3f(*[float(x) for x in direction])
         ctx.params.update()
-        return self._init_shading(trust_facings=trust_facings)
+        return self._init_shading(keep=keep)
 
     def _choose_roughness(self, kept, score, kept_is_current, restart):
         """The start made again (``restart``) with every Gaussian's roughness
@@ -603,10 +612,11 @@ class Stage2:
         score = max(scores) if scores else self._starting_score()
         return score if np.isfinite(score) else -np.inf
 
-    def _init_shading(self, trust_facings=False):
+    def _init_shading(self, keep=None):
         """One start under the scene's current sun direction (see
-        :meth:`init_shading`); ``trust_facings``: keep the facings' sun
-        irradiance where it disagrees with the lighting selection's level."""
+        :meth:`init_shading`); ``keep``: which sun level to take whatever the
+        facings and the lighting selection say (one of
+        :data:`~.shading_init.SUN_LEVELS`; None: their rules decide)."""
         ctx, model = self.ctx, self.ctx.model
         frame = self.frozen.first
         names = list(model.nodes)
@@ -678,9 +688,7 @@ class Stage2:
                 # The lighting selection's level: its sun/sky ratio times the sky term.
                 level = (np.pi * ctx.selection.get("sun", {}).get("sun_to_sky", 1.0)
                          * float(np.median(D[seen] @ LUMINANCE)) if seen.any() else 1.0)
-                if trust_facings:
-                    level = 0.0   # (reconcile_sun_irradiance then keeps the facings' estimate)
-                E, source = shading_init.reconcile_sun_irradiance(E, level)
+                E, source = shading_init.reconcile_sun_irradiance(E, level, keep)
                 if self.learn_sun_visibility and rho is not None and ctx.config.weights.lidar2rgb > 0:
                     # L_lidar->rgb's premise at the start: where the colour is
                     # much darker than the LiDAR albedo predicts, the sun is
@@ -688,7 +696,7 @@ class Stage2:
                     # also clean the groups the irradiance is estimated
                     # from, so the two alternate until the irradiance settles.
                     E, vis, source, lowered, raised = shading_init.settle_sun_and_visibility(
-                        colour, ambient, E, source, vis, cos, normals, seen, rho, level)
+                        colour, ambient, E, source, vis, cos, normals, seen, rho, level, keep)
                     report["lidar_albedo_shadowed"] = lowered
                     report["lidar_albedo_unshadowed"] = raised
                     for name, v in zip(names, shading_init.split_by_node(vis, table, counts)):

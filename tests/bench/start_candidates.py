@@ -88,9 +88,9 @@ def main():
             for level in ("facings", "selection", "weak"):
                 if level == "weak":
                     shading_init.reconcile_sun_irradiance = \
-                        lambda e, s: (original(e, s)[0] * 0.25, "facings x 0.25")
+                        lambda e, s, keep=None: (original(e, s, keep)[0] * 0.25, "facings x 0.25")
                 try:
-                    rep = self.start_under(sky, d, level != "selection")
+                    rep = self.start_under(sky, d, None if level == "selection" else "facings")
                 finally:
                     shading_init.reconcile_sun_irradiance = original
                 source = rep.get("sun_irradiance_from", "")
